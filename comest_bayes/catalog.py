@@ -1,0 +1,105 @@
+"""The detection catalog: one column schema for every detection backend.
+
+Both backends (SEP and the SExtractor binary) produce an
+:class:`astropy.table.Table` with exactly the columns of
+:data:`DETECTION_COLUMNS`, in that order, with units and descriptions, so
+everything downstream (matching, ratios, the completeness model) is written
+once.
+
+Conventions
+-----------
+* Pixel coordinates are **0-based** (numpy / SEP convention: the centre of
+  the first pixel is 0.0).  SExtractor's ``X_IMAGE`` is 1-based; the
+  SExtractor backend subtracts 1.
+* Magnitudes are ``zeropoint - 2.5 log10(flux)``; sources with non-positive
+  flux get NaN magnitudes (SExtractor writes 99).
+* ``flags`` follows SExtractor's FLAGS bits: 1 aperture photometry affected
+  by masked pixels, 2 deblended from a blend, 4 at least one pixel saturated,
+  8 touches the image border, 16 aperture truncated by the border, 64
+  deblending overflow.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from astropy.table import Table
+
+__all__ = ["DETECTION_COLUMNS", "FLAG_MASKED", "FLAG_BLENDED", "FLAG_SATURATED", "FLAG_EDGE",
+           "FLAG_APER_TRUNC", "FLAG_DEBLEND_OVERFLOW", "make_catalog", "flux_to_mag"]
+
+FLAG_MASKED = 1
+FLAG_BLENDED = 2
+FLAG_SATURATED = 4
+FLAG_EDGE = 8
+FLAG_APER_TRUNC = 16
+FLAG_DEBLEND_OVERFLOW = 64
+
+#: name -> (numpy dtype, unit, description).  "flux" is the image's unit.
+DETECTION_COLUMNS = {
+    "id": ("i8", None, "1-based object number; equals the object's value in the segmentation map"),
+    "x": ("f8", "pix", "barycentre x, 0-based (X_IMAGE - 1)"),
+    "y": ("f8", "pix", "barycentre y, 0-based (Y_IMAGE - 1)"),
+    "xwin": ("f8", "pix", "windowed centroid x, 0-based (XWIN_IMAGE - 1)"),
+    "ywin": ("f8", "pix", "windowed centroid y, 0-based (YWIN_IMAGE - 1)"),
+    "ra": ("f8", "deg", "right ascension of (xwin, ywin); NaN without a WCS"),
+    "dec": ("f8", "deg", "declination of (xwin, ywin); NaN without a WCS"),
+    "a": ("f8", "pix", "isophotal semi-major axis (A_IMAGE)"),
+    "b": ("f8", "pix", "isophotal semi-minor axis (B_IMAGE)"),
+    "theta": ("f8", "rad", "position angle of a, counter-clockwise from +x (THETA_IMAGE in radians)"),
+    "npix": ("i8", "pix2", "isophotal area above the threshold (ISOAREA_IMAGE)"),
+    "peak": ("f8", None, "peak pixel value above the background (FLUX_MAX), image units"),
+    "flux_iso": ("f8", None, "isophotal flux (FLUX_ISO), image units"),
+    "kron_radius": ("f8", None, "Kron radius in units of a and b (KRON_RADIUS)"),
+    "flux_auto": ("f8", None, "flux in the Kron ellipse (FLUX_AUTO), image units"),
+    "fluxerr_auto": ("f8", None, "1-sigma error of flux_auto (FLUXERR_AUTO), image units"),
+    "mag_auto": ("f8", "mag", "zeropoint - 2.5 log10(flux_auto) (MAG_AUTO)"),
+    "magerr_auto": ("f8", "mag", "1.0857 fluxerr_auto / flux_auto (MAGERR_AUTO)"),
+    "snr_auto": ("f8", None, "flux_auto / fluxerr_auto"),
+    "flux_aper": ("f8", None, "fluxes in circular apertures of the configured diameters (FLUX_APER)"),
+    "fluxerr_aper": ("f8", None, "1-sigma errors of flux_aper (FLUXERR_APER)"),
+    "mag_aper": ("f8", "mag", "aperture magnitudes (MAG_APER)"),
+    "magerr_aper": ("f8", "mag", "aperture magnitude errors (MAGERR_APER)"),
+    "flux_radius": ("f8", "pix", "radius enclosing phot_fluxfrac of flux_auto (FLUX_RADIUS)"),
+    "background": ("f8", None, "local background at the peak pixel (BACKGROUND), image units"),
+    "noise": ("f8", None, "noise sigma the threshold was relative to, at the peak pixel, image units"),
+    "flags": ("i8", None, "SExtractor-style FLAGS bits (see comest_bayes.catalog)"),
+}
+
+
+def flux_to_mag(flux, fluxerr, zeropoint):
+    """Magnitude and its error; NaN where the flux is not positive."""
+    flux = np.asarray(flux, dtype=float)
+    fluxerr = np.asarray(fluxerr, dtype=float)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        pos = flux > 0
+        mag = np.where(pos, zeropoint - 2.5 * np.log10(np.where(pos, flux, 1.0)), np.nan)
+        magerr = np.where(pos, 2.5 / np.log(10.0) * fluxerr / np.where(pos, flux, 1.0), np.nan)
+    return mag, magerr
+
+
+def make_catalog(columns: dict, naper: int, meta: dict | None = None) -> Table:
+    """Assemble a catalog table with the standard schema.
+
+    Parameters
+    ----------
+    columns : dict
+        Arrays for every key of :data:`DETECTION_COLUMNS`; the aperture columns
+        have shape (n, naper).
+    naper : int
+        Number of circular apertures.
+    meta : dict, optional
+        Table metadata (zero point, backend, threshold...).
+    """
+    missing = set(DETECTION_COLUMNS) - set(columns)
+    if missing:
+        raise KeyError(f"catalog is missing columns {sorted(missing)}")
+    n = len(columns["id"])
+    table = Table(meta=dict(meta or {}))
+    for name, (dtype, unit, desc) in DETECTION_COLUMNS.items():
+        values = np.asarray(columns[name], dtype=dtype)
+        if name.endswith("_aper"):
+            values = values.reshape(n, naper)
+        table[name] = values
+        table[name].unit = unit
+        table[name].description = desc
+    return table

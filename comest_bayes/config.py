@@ -1,0 +1,348 @@
+"""Declarative configuration: documented defaults, a TOML file, CLI overrides.
+
+A run is configured by a :class:`RunConfig`, made of one dataclass per stage
+of the data flow.  Each can be built directly from Python with keyword
+arguments, read from a TOML file whose tables are named after the sections
+(``[detection]``, ``[sourcefree]``), and patched with ``section.key=value``
+overrides from the command line.  Unknown keys and wrongly typed values are
+rejected with a message that names the key, the value received and the fix.
+
+The detection defaults are SExtractor's (``sex -d``), so a user who knows
+SExtractor reads them without translation:
+
+==========================  ==================  ===========================
+comest-bayes key            SExtractor keyword  default
+==========================  ==================  ===========================
+detection.thresh            DETECT_THRESH       1.5 (sigma of the noise)
+detection.minarea           DETECT_MINAREA      5 pixels
+detection.filter            FILTER_NAME         ``default`` (default.conv)
+detection.back_size         BACK_SIZE           64 pixels
+detection.back_filtersize   BACK_FILTERSIZE     3 meshes
+detection.deblend_nthresh   DEBLEND_NTHRESH     32
+detection.deblend_mincont   DEBLEND_MINCONT     0.005
+detection.clean             CLEAN               true
+detection.clean_param       CLEAN_PARAM         1.0
+detection.phot_autoparams   PHOT_AUTOPARAMS     [2.5, 3.5]
+detection.phot_apertures    PHOT_APERTURES      [5.0] (diameters, pixels)
+detection.phot_fluxfrac     PHOT_FLUXFRAC       0.5
+==========================  ==================  ===========================
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import difflib
+import sys
+from dataclasses import dataclass, field, fields
+from pathlib import Path
+from typing import Any, Mapping
+
+if sys.version_info >= (3, 11):
+    import tomllib
+else:  # pragma: no cover - exercised on Python 3.10 only
+    import tomli as tomllib
+
+from .errors import ConfigError
+
+__all__ = [
+    "DetectionConfig",
+    "SourceFreeConfig",
+    "RunConfig",
+    "load_config",
+    "parse_override",
+]
+
+NOISE_MODES = ("auto", "background", "global", "weight")
+BACKENDS = ("sep", "sextractor")
+
+
+@dataclass(frozen=True)
+class DetectionConfig:
+    """Detection settings, with SExtractor's meaning.
+
+    Parameters
+    ----------
+    thresh : float
+        Detection threshold per pixel of the *filtered* image, in units of the
+        noise sigma of the *unfiltered* image at that pixel (DETECT_THRESH).
+    minarea : int
+        Minimum number of connected pixels above threshold (DETECT_MINAREA).
+    filter : str
+        Convolution kernel applied before thresholding: ``"default"``
+        (SExtractor's 3x3 ``default.conv``), ``"gauss_<fwhm>_<n>x<n>"`` (a
+        normalised Gaussian of that FWHM in pixels), ``"none"``, or the path of
+        a SExtractor ``.conv`` file.  The kernel is normalised to unit sum, as
+        SExtractor's ``CONV NORM`` does, so the threshold keeps its meaning.
+    back_size, back_filtersize : int
+        Background mesh size in pixels and median-filter size in meshes.
+    noise : {"auto", "background", "global", "weight"}
+        Which sigma the threshold is relative to. ``"background"``: the
+        local background RMS map (SExtractor ``WEIGHT_TYPE BACKGROUND``);
+        ``"global"``: one global RMS (SExtractor's default ``WEIGHT_TYPE
+        NONE``); ``"weight"``: the user's weight map, rescaled to the measured
+        background RMS (``MAP_WEIGHT``/``MAP_RMS``/``MAP_VAR``); ``"auto"``:
+        ``weight`` when a weight map is given, else ``background``.
+    deblend_nthresh, deblend_mincont : int, float
+        Deblending levels and minimum contrast.
+    clean, clean_param : bool, float
+        Cleaning of spurious detections near bright objects.
+    phot_autoparams : (float, float)
+        Kron factor and minimum radius (in units of the Kron ellipse axes) of
+        the AUTO aperture.
+    phot_apertures : tuple of float
+        Circular aperture *diameters* in pixels.
+    phot_fluxfrac : float
+        Light fraction for FLUX_RADIUS.
+    pixstack, sub_object_limit : int
+        SEP's buffers (SExtractor's MEMORY_PIXSTACK and deblending limit).
+        SEP keeps these per process; comest-bayes sets them before every
+        extraction so worker processes agree.
+    backend : {"sep", "sextractor"}
+        The detector: SEP (library, default) or the SExtractor binary.
+    """
+
+    thresh: float = 1.5
+    minarea: int = 5
+    filter: str = "default"
+    back_size: int = 64
+    back_filtersize: int = 3
+    noise: str = "auto"
+    deblend_nthresh: int = 32
+    deblend_mincont: float = 0.005
+    clean: bool = True
+    clean_param: float = 1.0
+    phot_autoparams: tuple = (2.5, 3.5)
+    phot_apertures: tuple = (5.0,)
+    phot_fluxfrac: float = 0.5
+    pixstack: int = 3_000_000
+    sub_object_limit: int = 4096
+    backend: str = "sep"
+
+    def __post_init__(self):
+        _check(self.thresh > 0, "detection.thresh", self.thresh, "a positive number of sigma, e.g. 1.5")
+        _check(self.minarea >= 1, "detection.minarea", self.minarea, "an integer >= 1, e.g. 5")
+        _check(self.back_size >= 4, "detection.back_size", self.back_size, "a mesh size >= 4 pixels, e.g. 64")
+        _check(self.back_filtersize >= 1 and self.back_filtersize % 2 == 1,
+               "detection.back_filtersize", self.back_filtersize, "an odd integer >= 1, e.g. 3")
+        _check(self.noise in NOISE_MODES, "detection.noise", self.noise, f"one of {NOISE_MODES}")
+        _check(1 <= self.deblend_nthresh <= 64, "detection.deblend_nthresh", self.deblend_nthresh,
+               "an integer from 1 to 64, e.g. 32")
+        _check(0.0 <= self.deblend_mincont <= 1.0, "detection.deblend_mincont", self.deblend_mincont,
+               "a contrast in [0, 1], e.g. 0.005 (1 disables deblending)")
+        _check(self.clean_param > 0, "detection.clean_param", self.clean_param, "a positive number, e.g. 1.0")
+        _check(len(self.phot_autoparams) == 2 and all(v > 0 for v in self.phot_autoparams),
+               "detection.phot_autoparams", self.phot_autoparams, "two positive numbers, e.g. [2.5, 3.5]")
+        _check(len(self.phot_apertures) >= 1 and all(v > 0 for v in self.phot_apertures),
+               "detection.phot_apertures", self.phot_apertures, "positive diameters in pixels, e.g. [5.0, 10.0]")
+        _check(0.0 < self.phot_fluxfrac < 1.0, "detection.phot_fluxfrac", self.phot_fluxfrac,
+               "a fraction in (0, 1), e.g. 0.5")
+        _check(self.pixstack >= 10_000, "detection.pixstack", self.pixstack, "an integer >= 10000, e.g. 3000000")
+        _check(self.sub_object_limit >= 64, "detection.sub_object_limit", self.sub_object_limit,
+               "an integer >= 64, e.g. 4096")
+        _check(self.backend in BACKENDS, "detection.backend", self.backend, f"one of {BACKENDS}")
+
+
+@dataclass(frozen=True)
+class SourceFreeConfig:
+    """How the source-free (SFI) and bright-and-big (BnB) images are made.
+
+    Parameters
+    ----------
+    dilate : float
+        Every detected segment is grown by ``dilate`` times the seeing FWHM
+        (in pixels, at least ``dilate_min_pix``) before its pixels are replaced,
+        so that the PSF wings below the detection isophote go too.  The default
+        was chosen by measuring the mean residual in rings around removed
+        sources (see ``docs/sourcefree.md``).
+    dilate_min_pix : int
+        Lower bound of the dilation radius in pixels.
+    kron_mask : float
+        Additionally replace, for every source, the ellipse of ``kron_mask``
+        times its Kron radius (0 disables).  Catches the extended wings of
+        bright galaxies that a fixed dilation misses.
+    bnb : bool
+        Also make the "bright and big" image.
+    bnb_snr_min, bnb_area_min : float, int
+        Sources with AUTO signal-to-noise >= ``bnb_snr_min`` *and* isophotal
+        area >= ``bnb_area_min`` pixels are kept in the BnB image; all others
+        are replaced as in the SFI.
+    """
+
+    dilate: float = 1.0
+    dilate_min_pix: int = 2
+    kron_mask: float = 1.0
+    bnb: bool = True
+    bnb_snr_min: float = 50.0
+    bnb_area_min: int = 100
+
+    def __post_init__(self):
+        _check(self.dilate >= 0, "sourcefree.dilate", self.dilate, "a non-negative multiple of the FWHM, e.g. 1.0")
+        _check(self.dilate_min_pix >= 0, "sourcefree.dilate_min_pix", self.dilate_min_pix,
+               "a non-negative integer, e.g. 2")
+        _check(self.kron_mask >= 0, "sourcefree.kron_mask", self.kron_mask, "a non-negative factor, e.g. 1.0")
+        _check(self.bnb_snr_min > 0, "sourcefree.bnb_snr_min", self.bnb_snr_min, "a positive SNR, e.g. 50")
+        _check(self.bnb_area_min >= 1, "sourcefree.bnb_area_min", self.bnb_area_min,
+               "an integer >= 1 pixel, e.g. 100")
+
+
+@dataclass(frozen=True)
+class RunConfig:
+    """All settings of one run; one attribute per stage section."""
+
+    detection: DetectionConfig = field(default_factory=DetectionConfig)
+    sourcefree: SourceFreeConfig = field(default_factory=SourceFreeConfig)
+    seed: int = 0
+
+    def __post_init__(self):
+        _check(isinstance(self.seed, int) and not isinstance(self.seed, bool) and self.seed >= 0,
+               "seed", self.seed, "a non-negative integer")
+
+    def to_dict(self) -> dict:
+        """Plain-JSON form (tuples become lists), as written to ``run.json``."""
+        return _jsonable(dataclasses.asdict(self))
+
+    def replace(self, **sections) -> "RunConfig":
+        return dataclasses.replace(self, **sections)
+
+
+_SECTIONS = {"detection": DetectionConfig, "sourcefree": SourceFreeConfig}
+
+
+def _check(ok: bool, key: str, value: Any, expected: str) -> None:
+    if not ok:
+        raise ConfigError(f"invalid {key} = {value!r}: expected {expected}.")
+
+
+def _jsonable(obj):
+    if isinstance(obj, dict):
+        return {k: _jsonable(v) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return [_jsonable(v) for v in obj]
+    return obj
+
+
+def _coerce(section: str, name: str, default: Any, value: Any) -> Any:
+    """Convert a TOML/CLI value to the type of the field's default."""
+    key = f"{section}.{name}"
+    try:
+        if isinstance(default, bool):
+            if isinstance(value, str):
+                low = value.strip().lower()
+                if low in ("true", "yes", "y", "1", "on"):
+                    return True
+                if low in ("false", "no", "n", "0", "off"):
+                    return False
+                raise ValueError
+            if isinstance(value, bool):
+                return value
+            raise ValueError
+        if isinstance(default, int):
+            if isinstance(value, bool):
+                raise ValueError
+            if isinstance(value, float) and not value.is_integer():
+                raise ValueError
+            return int(value)
+        if isinstance(default, float):
+            if isinstance(value, bool):
+                raise ValueError
+            return float(value)
+        if isinstance(default, tuple):
+            if isinstance(value, str):
+                value = [v for v in value.replace("[", "").replace("]", "").split(",") if v.strip()]
+            if not isinstance(value, (list, tuple)):
+                value = [value]
+            return tuple(float(v) for v in value)
+        if isinstance(default, str):
+            if not isinstance(value, str):
+                raise ValueError
+            return value
+    except (TypeError, ValueError):
+        raise ConfigError(
+            f"invalid {key} = {value!r}: expected a value of type {type(default).__name__} "
+            f"like the default {default!r}."
+        ) from None
+    return value
+
+
+def _section_from_mapping(section: str, cls, mapping: Mapping[str, Any], base=None):
+    base = base if base is not None else cls()
+    names = {f.name: f for f in fields(cls)}
+    values = {}
+    for key, value in mapping.items():
+        if key not in names:
+            close = difflib.get_close_matches(key, names, n=1)
+            hint = f" Did you mean '{section}.{close[0]}'?" if close else ""
+            raise ConfigError(
+                f"unknown setting '{section}.{key}'.{hint} Valid keys of [{section}]: "
+                f"{', '.join(sorted(names))}."
+            )
+        values[key] = _coerce(section, key, getattr(base, key), value)
+    return dataclasses.replace(base, **values)
+
+
+def parse_override(text: str) -> tuple[str, str, str]:
+    """Split a ``section.key=value`` override into its three parts."""
+    if "=" not in text or "." not in text.split("=", 1)[0]:
+        raise ConfigError(
+            f"cannot read the override {text!r}: write it as section.key=value, "
+            f"e.g. detection.thresh=2.0."
+        )
+    lhs, value = text.split("=", 1)
+    section, key = lhs.strip().split(".", 1)
+    return section, key.strip(), value.strip()
+
+
+def load_config(path: str | Path | None = None, overrides: list[str] | Mapping | None = None,
+                seed: int | None = None) -> RunConfig:
+    """Build a :class:`RunConfig` from defaults, an optional TOML file and overrides.
+
+    Parameters
+    ----------
+    path : str or Path, optional
+        TOML file with ``[detection]`` and ``[sourcefree]`` tables (and an
+        optional top-level ``seed``).
+    overrides : list of str or mapping, optional
+        ``["detection.thresh=2", ...]`` or ``{"detection": {"thresh": 2}}``;
+        applied after the file.
+    seed : int, optional
+        Root seed; overrides the file's.
+    """
+    data: dict[str, Any] = {}
+    if path is not None:
+        path = Path(path)
+        if not path.is_file():
+            raise ConfigError(f"configuration file {str(path)!r} does not exist; check the --config path.")
+        try:
+            data = tomllib.loads(path.read_text())
+        except tomllib.TOMLDecodeError as exc:
+            raise ConfigError(f"configuration file {str(path)!r} is not valid TOML: {exc}.") from None
+
+    merged: dict[str, dict] = {name: dict(data.get(name, {})) for name in _SECTIONS}
+    top_seed = data.get("seed", 0)
+    extra = set(data) - set(_SECTIONS) - {"seed"}
+    if extra:
+        raise ConfigError(
+            f"unknown table(s) {sorted(extra)} in {str(path)!r}; valid tables: "
+            f"{sorted(_SECTIONS)} and the top-level key 'seed'."
+        )
+    if overrides:
+        items = overrides.items() if isinstance(overrides, Mapping) else None
+        if items is None:
+            for text in overrides:
+                section, key, value = parse_override(text)
+                if section not in _SECTIONS:
+                    raise ConfigError(
+                        f"unknown section {section!r} in override {text!r}; valid sections: "
+                        f"{sorted(_SECTIONS)}."
+                    )
+                merged[section][key] = value
+        else:
+            for section, table in items:
+                if section not in _SECTIONS:
+                    raise ConfigError(f"unknown section {section!r}; valid sections: {sorted(_SECTIONS)}.")
+                merged[section].update(table)
+    sections = {name: _section_from_mapping(name, cls, merged[name]) for name, cls in _SECTIONS.items()}
+    final_seed = seed if seed is not None else top_seed
+    if isinstance(final_seed, bool) or not isinstance(final_seed, int):
+        raise ConfigError(f"invalid seed = {final_seed!r}: expected a non-negative integer.")
+    return RunConfig(seed=final_seed, **sections)

@@ -1,0 +1,316 @@
+"""Source detection with SEP, keeping SExtractor's semantics.
+
+The same function runs on the observed image and, later, on every simulated
+image, so the injection-recovery measurement uses an identical detector.
+
+Threshold semantics
+-------------------
+SExtractor convolves the background-subtracted image with a *normalised*
+kernel and keeps pixels whose filtered value exceeds ``DETECT_THRESH`` times
+the noise sigma of the *unfiltered* image.  SEP does exactly this with
+``filter_type="conv"``; its default ``"matched"`` filter instead divides by the
+noise of the filtered image when a per-pixel error array is passed, which
+changes what the threshold means (a 1.5-sigma "matched" threshold is a much
+deeper cut) and is far slower on large images.  We therefore always call
+SEP with ``filter_type="conv"`` and an explicit noise map.
+"""
+
+from __future__ import annotations
+
+import re
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import sep
+
+from .catalog import (FLAG_APER_TRUNC, FLAG_BLENDED, FLAG_DEBLEND_OVERFLOW, FLAG_EDGE, FLAG_MASKED,
+                      FLAG_SATURATED, flux_to_mag, make_catalog)
+from .config import DetectionConfig
+from .errors import ConfigError, DetectionOverflowError, InputError
+
+__all__ = ["DetectionResult", "detect", "detect_array", "filter_kernel", "noise_map"]
+
+#: SExtractor's ``default.conv``: 3x3 "all-ground" kernel with FWHM = 2 pixels.
+DEFAULT_CONV = np.array([[1, 2, 1], [2, 4, 2], [1, 2, 1]], dtype=np.float32)
+
+
+@dataclass
+class DetectionResult:
+    """Output of one detection run.
+
+    Attributes
+    ----------
+    catalog : astropy.table.Table
+        Columns of :data:`comest_bayes.catalog.DETECTION_COLUMNS`.
+    segmentation : ndarray of int32, shape (ny, nx)
+        0 for sky, ``id`` of the object elsewhere.
+    background : ndarray of float32
+        Background level map (image units).
+    rms : ndarray of float32
+        Background RMS map from the mesh (image units).
+    noise : ndarray of float32
+        Noise sigma the threshold was relative to (equals ``rms`` unless a
+        weight map or the global mode was used).
+    meta : dict
+        Backend, threshold mode, global background and RMS, counts.
+    """
+
+    catalog: object
+    segmentation: np.ndarray
+    background: np.ndarray
+    rms: np.ndarray
+    noise: np.ndarray
+    meta: dict
+
+
+def filter_kernel(name: str) -> np.ndarray | None:
+    """The detection kernel for a ``detection.filter`` value, normalised to unit sum.
+
+    ``"default"`` is SExtractor's 3x3 default.conv; ``"gauss_F_NxN"`` is a
+    Gaussian of FWHM ``F`` pixels sampled on an N x N grid; ``"none"`` disables
+    filtering; anything else is read as a SExtractor ``.conv`` file.
+    """
+    if name in ("none", "None", ""):
+        return None
+    if name == "default":
+        kernel = DEFAULT_CONV.copy()
+    else:
+        m = re.fullmatch(r"gauss_(\d+(?:\.\d+)?)_(\d+)x(\d+)", name)
+        if m:
+            fwhm, n1, n2 = float(m.group(1)), int(m.group(2)), int(m.group(3))
+            if n1 != n2 or n1 % 2 == 0 or fwhm <= 0:
+                raise ConfigError(f"detection.filter={name!r}: use an odd square size, e.g. gauss_2.0_5x5.")
+            sig = fwhm / (2.0 * np.sqrt(2.0 * np.log(2.0)))
+            r = np.arange(n1) - n1 // 2
+            g = np.exp(-0.5 * (r / sig) ** 2)
+            kernel = np.outer(g, g).astype(np.float32)
+        else:
+            path = Path(name)
+            if not path.is_file():
+                raise ConfigError(
+                    f"detection.filter={name!r} is neither 'default', 'none', 'gauss_<fwhm>_<n>x<n>' "
+                    f"nor an existing SExtractor .conv file."
+                )
+            rows = []
+            for line in path.read_text().splitlines():
+                line = line.split("#", 1)[0].strip()
+                if not line or line.upper().startswith("CONV"):
+                    continue
+                rows.append([float(v) for v in line.split()])
+            if not rows or len({len(r) for r in rows}) != 1:
+                raise ConfigError(f"filter file {name!r} does not hold a rectangular kernel.")
+            kernel = np.array(rows, dtype=np.float32)
+    total = kernel.sum()
+    if total <= 0:
+        raise ConfigError(f"detection filter {name!r} sums to {total}; it cannot be normalised.")
+    return np.ascontiguousarray(kernel / total)
+
+
+def noise_map(mode: str, rms: np.ndarray, global_rms: float, weight_noise: np.ndarray | None,
+              mask: np.ndarray) -> tuple[np.ndarray, str]:
+    """The per-pixel sigma the detection threshold is relative to.
+
+    For ``weight`` mode the weight-map sigma is rescaled so that its median over
+    unmasked pixels equals that of the measured background RMS, as SExtractor
+    does for ``MAP_WEIGHT``: a weight map fixes the *shape* of the noise, the
+    image fixes its level.  Masked pixels get the median so no infinity
+    reaches the photometry.
+    """
+    if mode == "auto":
+        mode = "weight" if weight_noise is not None else "background"
+    if mode == "weight":
+        if weight_noise is None:
+            raise ConfigError("detection.noise='weight' needs a weight map; pass --weight FILE or use "
+                              "detection.noise=background.")
+        good = ~mask & np.isfinite(weight_noise)
+        scale = float(np.median(rms[good]) / np.median(weight_noise[good]))
+        out = (weight_noise * scale).astype(np.float32)
+    elif mode == "global":
+        out = np.full(rms.shape, global_rms, dtype=np.float32)
+    elif mode == "background":
+        out = rms.astype(np.float32, copy=True)
+    else:  # pragma: no cover - guarded by DetectionConfig
+        raise ConfigError(f"unknown detection.noise mode {mode!r}")
+    fill = float(np.median(out[~mask])) if (~mask).any() else 1.0
+    out[mask | ~np.isfinite(out)] = fill
+    return out, mode
+
+
+def _extract(data_sub, noise, mask, config: DetectionConfig, kernel):
+    """sep.extract with SExtractor semantics and overflow turned into a clear error.
+
+    On a buffer overflow the limits are raised once (pixel stack to the image
+    size, sub-object limit x4); a second overflow raises
+    :class:`DetectionOverflowError` with the numbers.
+    """
+    limits = [(config.pixstack, config.sub_object_limit),
+              (max(config.pixstack, data_sub.size), config.sub_object_limit * 4)]
+    last = None
+    for pixstack, sublimit in limits:
+        # SEP keeps these per process: set them every time so that worker processes agree.
+        sep.set_extract_pixstack(int(pixstack))
+        sep.set_sub_object_limit(int(sublimit))
+        try:
+            return sep.extract(
+                data_sub, config.thresh, err=noise, mask=mask, minarea=config.minarea,
+                filter_kernel=kernel, filter_type="conv",
+                deblend_nthresh=config.deblend_nthresh, deblend_cont=config.deblend_mincont,
+                clean=config.clean, clean_param=config.clean_param, segmentation_map=True,
+            ), (pixstack, sublimit)
+        except Exception as exc:  # SEP raises bare Exception for buffer overflows
+            text = str(exc)
+            if "buffer full" in text or "overflow" in text or "limit" in text:
+                last = text
+                continue
+            raise
+    raise DetectionOverflowError(
+        f"SEP overflowed its buffers even with a pixel stack of {limits[-1][0]} and a sub-object limit "
+        f"of {limits[-1][1]} ({last}). The image is too crowded for this configuration: raise "
+        f"detection.thresh or detection.minarea, lower detection.deblend_nthresh, or raise "
+        f"detection.pixstack / detection.sub_object_limit."
+    )
+
+
+def detect_array(data: np.ndarray, *, mask: np.ndarray | None = None, weight_noise: np.ndarray | None = None,
+                 zeropoint: float, gain: float | None = None, saturation: float | None = None, wcs=None,
+                 config: DetectionConfig = DetectionConfig()) -> DetectionResult:
+    """Detect and measure sources on an image array.
+
+    Parameters
+    ----------
+    data : ndarray, shape (ny, nx)
+        Image *with* its sky (the background is estimated here, as SExtractor
+        does); masked pixels may hold anything finite.
+    mask : ndarray of bool, optional
+        True for bad pixels.
+    weight_noise : ndarray, optional
+        1-sigma noise from a weight map (``ImageData.noise``).
+    zeropoint : float
+        Magnitude zero point.
+    gain, saturation : float, optional
+        e-/unit (adds Poisson noise to flux errors) and saturation level.
+    wcs : astropy.wcs.WCS, optional
+        For the ``ra``/``dec`` columns.
+    config : DetectionConfig
+        Detection settings (SExtractor meaning).
+
+    Returns
+    -------
+    DetectionResult
+    """
+    if config.backend != "sep":
+        raise ConfigError("detect_array runs SEP; use comest_bayes.sextractor.detect_sextractor for "
+                          "detection.backend='sextractor' (or call comest_bayes.detection.detect).")
+    data = np.ascontiguousarray(data, dtype=np.float32)
+    if mask is None:
+        mask = np.zeros(data.shape, dtype=bool)
+    mask = np.ascontiguousarray(mask, dtype=bool)
+    if not np.all(np.isfinite(data[~mask])):
+        raise InputError("the image holds NaN or infinite values in unmasked pixels; mask them first "
+                         "(load_image does this).")
+    data = np.where(mask, 0.0, data).astype(np.float32)
+
+    bkg = sep.Background(data, mask=mask, bw=config.back_size, bh=config.back_size,
+                         fw=config.back_filtersize, fh=config.back_filtersize)
+    back = bkg.back(dtype=np.float32)
+    rms = bkg.rms(dtype=np.float32)
+    noise, mode = noise_map(config.noise, rms, float(bkg.globalrms), weight_noise, mask)
+    data_sub = data - back
+    data_sub[mask] = 0.0
+
+    kernel = filter_kernel(config.filter)
+    (objs, seg), limits = _extract(data_sub, noise, mask, config, kernel)
+    seg = seg.astype(np.int32, copy=False)
+    columns = measure(data_sub, objs, noise=noise, mask=mask, back=back, config=config,
+                      zeropoint=zeropoint, gain=gain, saturation=saturation, wcs=wcs)
+    meta = {
+        "BACKEND": "sep", "SEPVER": sep.__version__, "ZEROPT": zeropoint, "THRESH": config.thresh,
+        "NOISEMOD": mode, "GLOBBACK": float(bkg.globalback), "GLOBRMS": float(bkg.globalrms),
+        "PIXSTACK": int(limits[0]), "SUBOBJ": int(limits[1]),
+    }
+    catalog = make_catalog(columns, len(config.phot_apertures), meta=meta)
+    return DetectionResult(catalog=catalog, segmentation=seg, background=back, rms=rms, noise=noise,
+                           meta={k.lower(): v for k, v in meta.items()} | {"nobj": len(catalog)})
+
+
+def measure(data_sub, objs, *, noise, mask, back, config: DetectionConfig, zeropoint, gain, saturation, wcs):
+    """Photometry and shape columns for SEP objects (Kron/AUTO, apertures, FLUX_RADIUS, windowed centroid)."""
+    n = len(objs)
+    ny, nx = data_sub.shape
+    x = objs["x"].astype(float)
+    y = objs["y"].astype(float)
+    a = np.maximum(objs["a"].astype(float), 1e-3)
+    b = np.maximum(objs["b"].astype(float), 1e-3)
+    theta = objs["theta"].astype(float)
+    flags = np.zeros(n, dtype=np.int64)
+    flags[(objs["flag"] & sep.OBJ_MERGED) != 0] |= FLAG_BLENDED
+    flags[(objs["flag"] & sep.OBJ_DOVERFLOW) != 0] |= FLAG_DEBLEND_OVERFLOW
+    edge = (objs["xmin"] <= 0) | (objs["ymin"] <= 0) | (objs["xmax"] >= nx - 1) | (objs["ymax"] >= ny - 1)
+    flags[edge] |= FLAG_EDGE
+    xp = np.clip(objs["xpeak"], 0, nx - 1)
+    yp = np.clip(objs["ypeak"], 0, ny - 1)
+    if saturation is not None and n:
+        flags[(objs["peak"] + back[yp, xp]) >= saturation] |= FLAG_SATURATED
+
+    kfact, rmin = config.phot_autoparams
+    naper = len(config.phot_apertures)
+    if n:
+        kron, kflag = sep.kron_radius(data_sub, x, y, a, b, theta, 6.0, mask=mask)
+        kron = np.where(np.isfinite(kron) & (kron > 0), kron, 0.0)
+        # SExtractor's AUTO ellipse: kfact * Kron radius, never below rmin (both in units of a, b).
+        scale = np.maximum(kfact * kron, rmin)
+        flux_auto, fluxerr_auto, aflag = sep.sum_ellipse(data_sub, x, y, a, b, theta, scale, err=noise,
+                                                         gain=gain, mask=mask, subpix=1)
+        flags[(aflag & sep.APER_HASMASKED) != 0] |= FLAG_MASKED
+        flags[(aflag & sep.APER_TRUNC) != 0] |= FLAG_APER_TRUNC
+        flux_aper = np.empty((n, naper))
+        fluxerr_aper = np.empty((n, naper))
+        for j, diam in enumerate(config.phot_apertures):
+            f, fe, fl = sep.sum_circle(data_sub, x, y, diam / 2.0, err=noise, gain=gain, mask=mask, subpix=5)
+            flux_aper[:, j], fluxerr_aper[:, j] = f, fe
+        rmax = np.maximum(6.0 * a, scale * a)
+        normflux = np.where(flux_auto > 0, flux_auto, objs["flux"])
+        flux_radius, _ = sep.flux_radius(data_sub, x, y, rmax, config.phot_fluxfrac, normflux=normflux,
+                                         mask=mask, subpix=5)
+        flux_radius = np.where(np.isfinite(flux_radius) & (flux_radius > 0), flux_radius, np.sqrt(a * b))
+        sig = 2.0 / 2.35 * flux_radius
+        xwin, ywin, wflag = sep.winpos(data_sub, x, y, sig, mask=mask)
+        badwin = ~np.isfinite(xwin) | ~np.isfinite(ywin) | (np.hypot(xwin - x, ywin - y) > 2.0 * flux_radius + 1)
+        xwin = np.where(badwin, x, xwin)
+        ywin = np.where(badwin, y, ywin)
+    else:
+        kron = flux_auto = fluxerr_auto = flux_radius = xwin = ywin = np.zeros(0)
+        flux_aper = fluxerr_aper = np.zeros((0, naper))
+    mag_auto, magerr_auto = flux_to_mag(flux_auto, fluxerr_auto, zeropoint)
+    mag_aper, magerr_aper = flux_to_mag(flux_aper, fluxerr_aper, zeropoint)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        snr = np.where(fluxerr_auto > 0, flux_auto / fluxerr_auto, np.nan)
+    if wcs is not None and n:
+        ra, dec = wcs.all_pix2world(xwin, ywin, 0)
+    else:
+        ra = dec = np.full(n, np.nan)
+    return {
+        "id": np.arange(1, n + 1), "x": x, "y": y, "xwin": xwin, "ywin": ywin, "ra": ra, "dec": dec,
+        "a": objs["a"], "b": objs["b"], "theta": theta, "npix": objs["npix"], "peak": objs["peak"],
+        "flux_iso": objs["flux"], "kron_radius": kron, "flux_auto": flux_auto, "fluxerr_auto": fluxerr_auto,
+        "mag_auto": mag_auto, "magerr_auto": magerr_auto, "snr_auto": snr, "flux_aper": flux_aper,
+        "fluxerr_aper": fluxerr_aper, "mag_aper": mag_aper, "magerr_aper": magerr_aper,
+        "flux_radius": flux_radius, "background": back[yp, xp] if n else np.zeros(0),
+        "noise": noise[yp, xp] if n else np.zeros(0), "flags": flags,
+    }
+
+
+def detect(image, config: DetectionConfig = DetectionConfig(), workdir=None) -> DetectionResult:
+    """Detect sources on an :class:`~comest_bayes.image.ImageData` with the configured backend.
+
+    ``workdir`` is where the SExtractor backend writes its temporary files
+    (a private temporary directory by default).
+    """
+    kwargs = dict(mask=image.mask, weight_noise=image.noise, zeropoint=image.zeropoint, gain=image.gain,
+                  saturation=image.saturation, wcs=image.wcs, config=config)
+    if config.backend == "sextractor":
+        from .sextractor import detect_sextractor
+
+        return detect_sextractor(image.data, workdir=workdir, **kwargs)
+    return detect_array(image.data, **kwargs)
