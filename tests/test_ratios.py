@@ -1,0 +1,259 @@
+"""Tests of comest_bayes.ratios: binned completeness, purity, detection rate, maps and map WCS."""
+
+import json
+import warnings
+
+import numpy as np
+import pytest
+from astropy.stats import binom_conf_interval
+from astropy.wcs import WCS, Sip
+from scipy.special import ndtri
+from scipy.stats import binom
+
+from comest_bayes.errors import InputError
+from comest_bayes.ratios import (
+    binned_ratio,
+    completeness,
+    completeness_map,
+    default_map_mag_edges,
+    detection_rate,
+    magnitude_at,
+    magnitude_edges,
+    map_bin_pixels,
+    map_wcs,
+    purity,
+    purity_map,
+    ratio_maps,
+)
+
+
+def _wilson(k, n, confidence):
+    """Wilson score interval written out (Wilson 1927), independent of astropy."""
+    z = ndtri(0.5 + confidence / 2)
+    p = k / n
+    centre = (p + z**2 / (2 * n)) / (1 + z**2 / n)
+    half = z * np.sqrt(p * (1 - p) / n + z**2 / (4 * n**2)) / (1 + z**2 / n)
+    return centre - half, centre + half
+
+
+def test_all_matched_none_matched_and_30_of_100():
+    edges = np.array([18.0, 19.0, 20.0, 21.0])
+    mags = np.r_[np.full(40, 18.5), np.full(25, 19.5), np.full(100, 20.5)]
+    matched = np.r_[np.ones(40, bool), np.zeros(25, bool), np.arange(100) < 30]
+    res = completeness(mags, matched, edges)
+    assert res.n.tolist() == [40, 25, 100]
+    assert res.k.tolist() == [40, 0, 30]
+    assert res.ratio.tolist() == [1.0, 0.0, 0.3]
+    # all bright injections found: completeness 1, interval containing 1
+    assert res.lower[0] < 1.0 and res.upper[0] == pytest.approx(1.0, abs=1e-12)
+    # none found: 0, interval containing 0
+    assert res.lower[1] == pytest.approx(0.0, abs=1e-12) and res.upper[1] > 0.0
+    # 30/100: Wilson interval equal to astropy's and to the closed form
+    ref = binom_conf_interval(30, 100, confidence_level=0.6827, interval="wilson")
+    assert res.lower[2] == pytest.approx(ref[0], rel=1e-12)
+    assert res.upper[2] == pytest.approx(ref[1], rel=1e-12)
+    lo, hi = _wilson(30, 100, 0.6827)
+    assert res.lower[2] == pytest.approx(lo, rel=1e-9) and res.upper[2] == pytest.approx(hi, rel=1e-9)
+    # the other methods are passed through
+    jef = completeness(mags, matched, edges, interval="jeffreys", confidence=0.9)
+    ref = binom_conf_interval(30, 100, confidence_level=0.9, interval="jeffreys")
+    assert (jef.lower[2], jef.upper[2]) == pytest.approx(tuple(ref), rel=1e-12)
+
+
+def test_masked_injections_are_left_out():
+    mags = np.full(10, 22.1)
+    matched = np.arange(10) < 4
+    masked = np.arange(10) >= 8  # two unmatched ones fell on masked pixels
+    res = completeness(mags, matched, [22.0, 22.2], masked=masked)
+    assert res.n.tolist() == [8] and res.k.tolist() == [4] and res.ratio[0] == 0.5
+
+
+def test_empty_bins_are_nan_without_warnings():
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        res = completeness([20.1, 20.3], [True, False], [20.0, 20.5, 21.0, 21.5])
+        dr = detection_rate([20.2], [20.1, 20.3], [20.0, 20.5, 21.0, 21.5])
+        maps = ratio_maps([1.0], [1.0], [20.2], [True], image_shape=(10, 20), bin_pix=5, mag_edges=[20, 21])
+    assert res.n.tolist() == [2, 0, 0]
+    assert np.isnan(res.ratio[1:]).all() and np.isnan(res.lower[1:]).all() and np.isnan(res.upper[1:]).all()
+    assert np.isnan(dr.ratio[1:]).all()
+    assert maps.n.sum() == 1 and np.isnan(maps.ratio).sum() == maps.ratio.size - 1
+
+
+def test_binning_convention():
+    edges = [0.0, 1.0, 2.0]
+    # 2.0 (the last edge) is in the last bin; 1.0 in the second; outside and NaN in none
+    res = binned_ratio([0.0, 1.0, 2.0, -0.1, 2.1, np.nan], np.ones(6, bool), edges)
+    assert res.n.tolist() == [1, 2]
+    np.testing.assert_allclose(res.centers, [0.5, 1.5])
+
+
+def test_purity_excludes_kept_and_counts_false():
+    # bin 1: 10 matched + 5 false; bin 2: 3 matched + 0 false + 4 on kept real sources
+    det_mag = np.r_[np.full(15, 21.5), np.full(7, 22.5)]
+    matched = np.r_[np.ones(10, bool), np.zeros(5, bool), np.ones(3, bool), np.zeros(4, bool)]
+    kept = np.r_[np.zeros(18, bool), np.ones(4, bool)]
+    res = purity(det_mag, matched, [21.0, 22.0, 23.0], excluded=kept)
+    assert res.n.tolist() == [15, 3]
+    assert res.k.tolist() == [10, 3]
+    np.testing.assert_allclose(res.ratio, [10 / 15, 1.0])
+    assert res.quantity == "mag_meas"
+
+
+def test_detection_rate_can_exceed_one():
+    edges = [20.0, 21.0, 22.0]
+    truth = np.r_[np.full(10, 20.5), np.full(4, 21.5)]
+    det = np.r_[np.full(8, 20.5), np.full(9, 21.5), [21.6]]
+    det_excluded = np.r_[np.zeros(17, bool), [True]]
+    res = detection_rate(det, truth, edges, det_excluded=det_excluded)
+    assert res.k.tolist() == [8, 9] and res.n.tolist() == [10, 4]
+    np.testing.assert_allclose(res.ratio, [0.8, 2.25])
+    assert np.all(res.lower < res.ratio) and np.all(res.ratio < res.upper)
+    assert res.interval == "poisson"
+
+
+def test_to_dict_and_to_table():
+    res = completeness([20.1, 20.2], [True, False], [20.0, 20.5, 21.0])
+    d = res.to_dict()
+    text = json.dumps(d, allow_nan=False)  # NaN would make this raise
+    assert json.loads(text)["ratio"] == [0.5, None]
+    assert d["n"] == [2, 0] and d["name"] == "completeness"
+    t = res.to_table()
+    assert t.colnames == ["mag_lo", "mag_hi", "mag_center", "n", "k", "ratio", "lower", "upper"]
+    assert str(t["mag_center"].unit) == "mag"
+    assert t["k"][0] == 1 and t.meta["interval"] == "wilson"
+
+
+def test_input_errors():
+    with pytest.raises(InputError, match="strictly increasing"):
+        completeness([20.0], [True], [21.0, 20.0])
+    with pytest.raises(InputError, match="interval"):
+        completeness([20.0], [True], [19.0, 21.0], interval="wald-ish")
+    with pytest.raises(InputError, match="boolean"):
+        completeness([20.0], [1], [19.0, 21.0])
+    with pytest.raises(InputError, match="confidence"):
+        purity([20.0], [True], [19.0, 21.0], confidence=68.0)
+
+
+def test_wilson_coverage_by_simulation():
+    # 2000 independent bins of n = 200 Bernoulli(p = 0.7) trials (fixed seed).
+    # The exact coverage of the discrete Wilson interval at n = 200 is computed
+    # from the binomial pmf (0.684, within 0.01 of the nominal 0.6827).  The
+    # simulated coverage is a binomial proportion over 2000 bins with sd
+    # sqrt(c (1 - c) / 2000) ~ 0.010; we allow 3.5 sd.
+    rng = np.random.default_rng(2016)
+    p, n, nbins, conf = 0.7, 200, 2000, 0.6827
+    mags = np.repeat(np.arange(nbins) + 0.5, n)
+    matched = rng.uniform(size=mags.size) < p
+    res = completeness(mags, matched, np.arange(nbins + 1.0), confidence=conf)
+    assert np.all(res.n == n)
+    covered = (res.lower <= p) & (p <= res.upper)
+    mc = covered.mean()
+    k = np.arange(n + 1)
+    lo, hi = binom_conf_interval(k, np.full(n + 1, n), confidence_level=conf, interval="wilson")
+    exact = binom.pmf(k, n, p)[(lo <= p) & (p <= hi)].sum()
+    assert abs(exact - conf) < 0.01
+    sd = np.sqrt(exact * (1 - exact) / nbins)
+    assert abs(mc - exact) < 3.5 * sd
+
+
+def test_magnitude_edges_and_m50():
+    e = magnitude_edges(20.0, 21.0, 0.2)
+    np.testing.assert_allclose(e, [20.0, 20.2, 20.4, 20.6, 20.8, 21.0])
+    assert magnitude_edges(20.0, 21.05, 0.2)[-1] == pytest.approx(21.2)
+    # a known falling completeness: 1.0, 0.8, 0.4, 0.0 at centres 20.5..23.5 -> 50% at 22.25
+    mags = np.repeat([20.5, 21.5, 22.5, 23.5], 10)
+    matched = np.r_[np.ones(10, bool), np.arange(10) < 8, np.arange(10) < 4, np.zeros(10, bool)]
+    res = completeness(mags, matched, [20.0, 21.0, 22.0, 23.0, 24.0])
+    assert magnitude_at(res, 0.5) == pytest.approx(22.25)
+    np.testing.assert_allclose(default_map_mag_edges(22.25), [20.75, 21.75, 22.75, 23.75])
+    with pytest.raises(InputError, match="map_mag_edges"):
+        default_map_mag_edges(np.nan)
+
+
+def test_ratio_maps_known_counts():
+    b = map_bin_pixels(0.5, 0.3)  # 0.5 arcmin at 0.3"/px = 100 px
+    assert b == 100.0
+    assert map_bin_pixels(0.5, 0.3, integer=False) == pytest.approx(100.0)
+    shape = (250, 120)  # ny, nx -> 3 x 2 bins
+    # bin (iy=0, ix=0): x = -0.5 is its left edge; x = 99.49 still inside
+    # bin (iy=2, ix=1): y = 200.0, x = 99.5 (the edge between bins 0 and 1)
+    # outside the image: x = 119.5, y = -0.6
+    x = np.array([-0.5, 99.49, 99.5, 119.5, 10.0, 10.0, 10.0])
+    y = np.array([0.0, 50.0, 200.0, 10.0, -0.6, 10.0, 10.0])
+    mag = np.array([20.5, 20.5, 21.5, 20.5, 20.5, 20.5, 25.0])  # the last is outside the mag edges
+    ok = np.array([True, False, True, True, True, True, True])
+    maps = ratio_maps(x, y, mag, ok, image_shape=shape, bin_pix=b, mag_edges=[20, 21, 22])
+    assert maps.n.shape == (2, 3, 2) and maps.shape == (3, 2)
+    assert maps.n[0, 0, 0] == 3 and maps.k[0, 0, 0] == 2
+    assert maps.ratio[0, 0, 0] == pytest.approx(2 / 3)
+    assert maps.n[1, 2, 1] == 1 and maps.k[1, 2, 1] == 1
+    assert maps.n.sum() == 4
+    np.testing.assert_allclose(maps.x_edges, [-0.5, 99.5, 199.5])
+    ref = binom_conf_interval(2, 3, confidence_level=0.6827, interval="wilson")
+    assert maps.lower[0, 0, 0] == pytest.approx(ref[0])
+    # wrappers: masked injections and excluded detections are left out
+    cm = completeness_map(x, y, mag, ok, image_shape=shape, bin_pix=b, mag_edges=[20, 21, 22],
+                          masked=np.r_[True, np.zeros(6, bool)])
+    assert cm.n[0, 0, 0] == 2 and cm.name == "completeness"
+    pm = purity_map(x, y, mag, ok, image_shape=shape, bin_pix=b, mag_edges=[20, 21, 22],
+                    excluded=np.r_[False, True, np.zeros(5, bool)])
+    assert pm.n[0, 0, 0] == 2 and pm.k[0, 0, 0] == 2
+
+
+def _rotated_wcs(angle_deg, use_cd=True, sip=False):
+    w = WCS(naxis=2)
+    w.wcs.ctype = ["RA---TAN-SIP", "DEC--TAN-SIP"] if sip else ["RA---TAN", "DEC--TAN"]
+    w.wcs.crval = [150.1, 2.2]
+    w.wcs.crpix = [1023.7, 511.2]
+    t = np.deg2rad(angle_deg)
+    scale = 0.2 / 3600.0
+    matrix = scale * np.array([[-np.cos(t), np.sin(t)], [np.sin(t), np.cos(t)]])
+    if use_cd:
+        w.wcs.cd = matrix
+    else:
+        w.wcs.cdelt = [scale, scale]
+        w.wcs.pc = matrix / scale
+    if sip:
+        a = np.zeros((4, 4))
+        bb = np.zeros((4, 4))
+        a[2, 0], a[1, 1], a[0, 3] = 3e-6, -2e-6, 1e-9
+        bb[0, 2], bb[2, 1] = 4e-6, 2e-9
+        w.sip = Sip(a, bb, None, None, w.wcs.crpix)
+    w.wcs.set()
+    return w
+
+
+@pytest.mark.parametrize("use_cd,sip", [(True, False), (False, False), (True, True)])
+@pytest.mark.parametrize("bin_pix", [100.0, 37.3])
+def test_map_wcs_bin_centres(use_cd, sip, bin_pix):
+    image = _rotated_wcs(30.0, use_cd=use_cd, sip=sip)
+    crpix_before = image.wcs.crpix.copy()
+    mw = map_wcs(image, bin_pix, shape=(20, 30))
+    assert mw.pixel_shape == (30, 20)
+    i, j = np.meshgrid(np.arange(30), np.arange(20))
+    sky_map = mw.pixel_to_world(i, j)
+    sky_img = image.pixel_to_world((i + 0.5) * bin_pix - 0.5, (j + 0.5) * bin_pix - 0.5)
+    assert sky_map.separation(sky_img).deg.max() < 1e-6
+    np.testing.assert_array_equal(image.wcs.crpix, crpix_before)  # input untouched
+    # the header round-trips
+    again = WCS(mw.to_header(relax=True))
+    assert again.pixel_to_world(i, j).separation(sky_img).deg.max() < 1e-6
+
+
+def test_map_wcs_sip_terms_are_needed():
+    # Guard against a test that cannot fail: with SIP distortion, a map WCS
+    # that only rescales the linear part is off by far more than 1e-6 deg.
+    image = _rotated_wcs(30.0, sip=True)
+    linear_only = _rotated_wcs(30.0, sip=False)
+    mw = map_wcs(linear_only, 100.0)
+    i, j = np.meshgrid(np.arange(30), np.arange(20))
+    sky_img = image.pixel_to_world((i + 0.5) * 100.0 - 0.5, (j + 0.5) * 100.0 - 0.5)
+    assert mw.pixel_to_world(i, j).separation(sky_img).deg.max() > 1e-4
+
+
+def test_map_wcs_errors():
+    with pytest.raises(InputError, match="bin_pix"):
+        map_wcs(_rotated_wcs(0.0), 0.0)
+    with pytest.raises(InputError, match="2 axes"):
+        map_wcs(WCS(naxis=3), 10.0)
