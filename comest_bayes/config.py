@@ -47,6 +47,9 @@ from .errors import ConfigError
 __all__ = [
     "DetectionConfig",
     "SourceFreeConfig",
+    "InjectionConfig",
+    "MatchingConfig",
+    "RatiosConfig",
     "RunConfig",
     "load_config",
     "parse_override",
@@ -146,43 +149,223 @@ class DetectionConfig:
 class SourceFreeConfig:
     """How the source-free (SFI) and bright-and-big (BnB) images are made.
 
+    Every detected segment is grown by its own radius before its pixels are
+    replaced by sky draws, so that the PSF wings and galaxy outskirts below the
+    detection isophote go too::
+
+        r_i = max(dilate * fwhm, dilate_min_pix) + dilate_size * sqrt(area_i / pi)
+
+    with ``area_i`` the segment's area in pixels.  The defaults were chosen by
+    measuring the mean residual in rings around the replaced pixels on a
+    simulated field with known sky (``docs/sourcefree.md``).
+
     Parameters
     ----------
     dilate : float
-        Every detected segment is grown by ``dilate`` times the seeing FWHM
-        (in pixels, at least ``dilate_min_pix``) before its pixels are replaced,
-        so that the PSF wings below the detection isophote go too.  The default
-        was chosen by measuring the mean residual in rings around removed
-        sources (see ``docs/sourcefree.md``).
+        Fixed part of the growth radius in units of the seeing FWHM.
+    dilate_size : float
+        Part of the growth radius proportional to the object's isophotal
+        radius ``sqrt(area / pi)``: the wings of bright objects reach further
+        beyond their isophote.
     dilate_min_pix : int
-        Lower bound of the dilation radius in pixels.
+        Lower bound of the fixed part, pixels.
     kron_mask : float
         Additionally replace, for every source, the ellipse of ``kron_mask``
-        times its Kron radius (0 disables).  Catches the extended wings of
-        bright galaxies that a fixed dilation misses.
+        times its Kron radius (0 disables; the default, since growing by
+        ``dilate_size`` removes the wings with fewer pixels).
+    reestimate_background : bool
+        Estimate the background level and RMS again with the replaced pixels
+        masked before drawing the sky (a background estimated with the sources
+        present is biased high).
+    back_size, back_filtersize : int
+        Mesh size (pixels) and median-filter size (meshes) of that re-estimate;
+        0 takes the detection's values when its metadata records them, else
+        SExtractor's defaults 64 and 3.
     bnb : bool
         Also make the "bright and big" image.
     bnb_snr_min, bnb_area_min : float, int
         Sources with AUTO signal-to-noise >= ``bnb_snr_min`` *and* isophotal
-        area >= ``bnb_area_min`` pixels are kept in the BnB image; all others
-        are replaced as in the SFI.
+        area >= ``bnb_area_min`` pixels are kept (with their grown footprint)
+        in the BnB image; all others are replaced as in the SFI.
     """
 
     dilate: float = 1.0
+    dilate_size: float = 1.0
     dilate_min_pix: int = 2
-    kron_mask: float = 1.0
+    kron_mask: float = 0.0
+    reestimate_background: bool = True
+    back_size: int = 0
+    back_filtersize: int = 0
     bnb: bool = True
     bnb_snr_min: float = 50.0
     bnb_area_min: int = 100
 
     def __post_init__(self):
         _check(self.dilate >= 0, "sourcefree.dilate", self.dilate, "a non-negative multiple of the FWHM, e.g. 1.0")
+        _check(self.dilate_size >= 0, "sourcefree.dilate_size", self.dilate_size,
+               "a non-negative multiple of the isophotal radius, e.g. 1.0")
         _check(self.dilate_min_pix >= 0, "sourcefree.dilate_min_pix", self.dilate_min_pix,
                "a non-negative integer, e.g. 2")
-        _check(self.kron_mask >= 0, "sourcefree.kron_mask", self.kron_mask, "a non-negative factor, e.g. 1.0")
+        _check(self.kron_mask >= 0, "sourcefree.kron_mask", self.kron_mask,
+               "a non-negative factor, e.g. 2.5 (0 disables)")
+        _check(self.back_size == 0 or self.back_size >= 4, "sourcefree.back_size", self.back_size,
+               "0 (the detection's mesh) or a mesh size >= 4 pixels, e.g. 64")
+        _check(self.back_filtersize == 0 or (self.back_filtersize >= 1 and self.back_filtersize % 2 == 1),
+               "sourcefree.back_filtersize", self.back_filtersize,
+               "0 (the detection's) or an odd integer >= 1, e.g. 3")
         _check(self.bnb_snr_min > 0, "sourcefree.bnb_snr_min", self.bnb_snr_min, "a positive SNR, e.g. 50")
         _check(self.bnb_area_min >= 1, "sourcefree.bnb_area_min", self.bnb_area_min,
                "an integer >= 1 pixel, e.g. 100")
+
+
+KINDS = ("point", "buldisk", "sersic", "cosmos", "observed")
+PLACEMENTS = ("uniform", "grid", "halton")
+PSF_KINDS = ("moffat", "gaussian", "kolmogorov")
+
+
+@dataclass(frozen=True)
+class InjectionConfig:
+    """What is injected, where, and how many times.
+
+    Parameters
+    ----------
+    kinds : tuple of str
+        Source kinds, each run separately: ``point`` (the PSF), ``buldisk``
+        (de Vaucouleurs bulge + exponential disk), ``sersic``, ``cosmos`` (real
+        COSMOS galaxies from ``cosmos_dir``), ``observed`` (magnitudes and sizes
+        drawn from the image's own detection catalog).
+    nsims : int
+        Realizations (simulated images) per kind.
+    density : float
+        Mean number of injections per arcmin^2 of unmasked area (Poisson-drawn);
+        ComEst's default is 15.
+    mag_range : tuple of float
+        (bright, faint) limits of the uniform magnitude distribution; empty for
+        automatic: from the image's 5-sigma point-source depth m5 as
+        (m5 - 5, m5 + 1.5).
+    placement : {"uniform", "grid", "halton"}
+        Uniform random with a minimum separation, a jittered grid, or the
+        quasi-random Halton sequence.
+    min_sep : float
+        Minimum separation between injections in arcsec, so injections do not
+        blend with each other.
+    psf : str
+        ``moffat``, ``gaussian``, ``kolmogorov`` (of the image FWHM) or the path
+        of a FITS PSF image.
+    psf_pixel_scale : float
+        Pixel scale (arcsec) of a FITS PSF image; 0 means the image's.
+    moffat_beta : float
+        Moffat beta.
+    hlr_range, q_range, bulge_fraction_range, sersic_n_range : tuple of float
+        Uniform ranges of half-light radius (arcsec), axis ratio, bulge flux
+        fraction and Sersic index.
+    cosmos_dir, cosmos_file : str
+        GalSim RealGalaxyCatalog directory and catalog file name (``cosmos``).
+    on : {"sfi", "bnb"}
+        Inject onto the source-free or the bright-and-big image.
+    photon_noise : bool
+        Add the sources' Poisson noise when the gain is known.
+    write_images : bool
+        Also write every simulated image (large!).
+    """
+
+    kinds: tuple = ("point", "buldisk")
+    nsims: int = 10
+    density: float = 15.0
+    mag_range: tuple = ()
+    placement: str = "uniform"
+    min_sep: float = 5.0
+    psf: str = "moffat"
+    psf_pixel_scale: float = 0.0
+    moffat_beta: float = 3.0
+    hlr_range: tuple = (0.35, 0.75)
+    q_range: tuple = (0.4, 1.0)
+    bulge_fraction_range: tuple = (0.0, 1.0)
+    sersic_n_range: tuple = (0.5, 4.0)
+    cosmos_dir: str = ""
+    cosmos_file: str = "real_galaxy_catalog_26_extension_example.fits"
+    on: str = "sfi"
+    photon_noise: bool = True
+    write_images: bool = False
+
+    def __post_init__(self):
+        _check(len(self.kinds) >= 1 and all(k in KINDS for k in self.kinds), "injection.kinds", self.kinds,
+               f"a list of kinds from {KINDS}")
+        _check(self.nsims >= 1, "injection.nsims", self.nsims, "an integer >= 1")
+        _check(self.density > 0, "injection.density", self.density, "a positive density per arcmin^2, e.g. 15")
+        _check(len(self.mag_range) == 0 or (len(self.mag_range) == 2 and self.mag_range[0] < self.mag_range[1]),
+               "injection.mag_range", self.mag_range, "[] (automatic) or [bright, faint] with bright < faint")
+        _check(self.placement in PLACEMENTS, "injection.placement", self.placement, f"one of {PLACEMENTS}")
+        _check(self.min_sep >= 0, "injection.min_sep", self.min_sep, "a non-negative separation in arcsec")
+        _check(self.moffat_beta > 1.1, "injection.moffat_beta", self.moffat_beta, "a Moffat beta > 1.1, e.g. 3")
+        for name in ("hlr_range", "q_range", "bulge_fraction_range", "sersic_n_range"):
+            value = getattr(self, name)
+            _check(len(value) == 2 and 0 <= value[0] <= value[1], f"injection.{name}", value,
+                   "[low, high] with 0 <= low <= high")
+        _check(0 < self.q_range[0] and self.q_range[1] <= 1, "injection.q_range", self.q_range,
+               "axis ratios in (0, 1]")
+        _check(self.bulge_fraction_range[1] <= 1, "injection.bulge_fraction_range", self.bulge_fraction_range,
+               "fractions in [0, 1]")
+        _check(0.3 <= self.sersic_n_range[0] and self.sersic_n_range[1] <= 6.2, "injection.sersic_n_range",
+               self.sersic_n_range, "indices within GalSim's supported 0.3-6.2")
+        _check(self.hlr_range[0] > 0, "injection.hlr_range", self.hlr_range, "positive radii in arcsec")
+        _check(self.on in ("sfi", "bnb"), "injection.on", self.on, "'sfi' or 'bnb'")
+
+
+@dataclass(frozen=True)
+class MatchingConfig:
+    """One-to-one matching of injections to detections.
+
+    Parameters
+    ----------
+    radius_fwhm : float
+        Positional tolerance in units of the seeing FWHM (default 1).
+    mag_tol : float
+        Largest accepted ``|measured - true|`` magnitude difference (default 1.5).
+    mag_column : str
+        Detection-catalog magnitude compared with the truth (default mag_auto).
+    """
+
+    radius_fwhm: float = 1.0
+    mag_tol: float = 1.5
+    mag_column: str = "mag_auto"
+
+    def __post_init__(self):
+        _check(self.radius_fwhm > 0, "matching.radius_fwhm", self.radius_fwhm, "a positive multiple of the FWHM")
+        _check(self.mag_tol > 0, "matching.mag_tol", self.mag_tol, "a positive magnitude tolerance, e.g. 1.5")
+
+
+@dataclass(frozen=True)
+class RatiosConfig:
+    """Binning of the raw ratios (the paper's Eq. 1-4).
+
+    Parameters
+    ----------
+    mag_bin : float
+        Magnitude bin width for f_com(m), f_pur(m), f_dr(m).
+    map_bin_arcmin : float
+        Spatial bin size of the maps, arcmin.
+    map_mag_edges : tuple of float
+        Magnitude bin edges of the maps; empty for automatic (three bins
+        around the 50% completeness magnitude).
+    confidence : float
+        Probability content of the binomial intervals (0.6827 = 1 sigma).
+    interval : {"wilson", "jeffreys", "flat"}
+        Binomial interval method (astropy.stats.binom_conf_interval).
+    """
+
+    mag_bin: float = 0.2
+    map_bin_arcmin: float = 1.0
+    map_mag_edges: tuple = ()
+    confidence: float = 0.6827
+    interval: str = "wilson"
+
+    def __post_init__(self):
+        _check(self.mag_bin > 0, "ratios.mag_bin", self.mag_bin, "a positive bin width in mag")
+        _check(self.map_bin_arcmin > 0, "ratios.map_bin_arcmin", self.map_bin_arcmin, "a positive size in arcmin")
+        _check(0 < self.confidence < 1, "ratios.confidence", self.confidence, "a probability in (0, 1)")
+        _check(self.interval in ("wilson", "jeffreys", "flat"), "ratios.interval", self.interval,
+               "wilson, jeffreys or flat")
 
 
 @dataclass(frozen=True)
@@ -191,6 +374,9 @@ class RunConfig:
 
     detection: DetectionConfig = field(default_factory=DetectionConfig)
     sourcefree: SourceFreeConfig = field(default_factory=SourceFreeConfig)
+    injection: InjectionConfig = field(default_factory=InjectionConfig)
+    matching: MatchingConfig = field(default_factory=MatchingConfig)
+    ratios: RatiosConfig = field(default_factory=RatiosConfig)
     seed: int = 0
 
     def __post_init__(self):
@@ -205,7 +391,8 @@ class RunConfig:
         return dataclasses.replace(self, **sections)
 
 
-_SECTIONS = {"detection": DetectionConfig, "sourcefree": SourceFreeConfig}
+_SECTIONS = {"detection": DetectionConfig, "sourcefree": SourceFreeConfig, "injection": InjectionConfig,
+             "matching": MatchingConfig, "ratios": RatiosConfig}
 
 
 def _check(ok: bool, key: str, value: Any, expected: str) -> None:
@@ -239,6 +426,8 @@ def _coerce(section: str, name: str, default: Any, value: Any) -> Any:
         if isinstance(default, int):
             if isinstance(value, bool):
                 raise ValueError
+            if isinstance(value, str):
+                value = float(value)
             if isinstance(value, float) and not value.is_integer():
                 raise ValueError
             return int(value)
@@ -251,6 +440,8 @@ def _coerce(section: str, name: str, default: Any, value: Any) -> Any:
                 value = [v for v in value.replace("[", "").replace("]", "").split(",") if v.strip()]
             if not isinstance(value, (list, tuple)):
                 value = [value]
+            if default and isinstance(default[0], str):
+                return tuple(str(v).strip() for v in value)
             return tuple(float(v) for v in value)
         if isinstance(default, str):
             if not isinstance(value, str):

@@ -242,7 +242,9 @@ def measure(data_sub, objs, *, noise, mask, back, config: DetectionConfig, zerop
     y = objs["y"].astype(float)
     a = np.maximum(objs["a"].astype(float), 1e-3)
     b = np.maximum(objs["b"].astype(float), 1e-3)
-    theta = objs["theta"].astype(float)
+    # float32(pi/2) exceeds pi/2 in float64, which sep.sum_ellipse rejects ("invalid aperture
+    # parameters") for objects aligned with the y axis; clip back to SEP's range.
+    theta = np.clip(objs["theta"].astype(float), -np.pi / 2, np.pi / 2)
     flags = np.zeros(n, dtype=np.int64)
     flags[(objs["flag"] & sep.OBJ_MERGED) != 0] |= FLAG_BLENDED
     flags[(objs["flag"] & sep.OBJ_DOVERFLOW) != 0] |= FLAG_DEBLEND_OVERFLOW

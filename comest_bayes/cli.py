@@ -1,0 +1,171 @@
+"""The ``comest-bayes`` command line.
+
+``comest-bayes run IMAGE --out DIR [options]``
+    Run every stage on an image.
+``comest-bayes demo [--out DIR]``
+    Synthesize the built-in demo tile and run every stage on it.
+
+User mistakes (a missing file, an unreadable header, a run directory holding
+another run) are printed as one ``error:`` line without a traceback and exit
+with status 2; ``--debug`` shows the traceback.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import time
+from pathlib import Path
+
+from . import __version__
+from .errors import ComestError
+
+__all__ = ["main", "build_parser"]
+
+
+def _add_config_options(p: argparse.ArgumentParser) -> None:
+    g = p.add_argument_group("configuration")
+    g.add_argument("--config", metavar="TOML", help="TOML file with [detection] and [sourcefree] tables")
+    g.add_argument("--set", dest="overrides", action="append", default=[], metavar="SECTION.KEY=VALUE",
+                   help="override one setting, e.g. --set detection.thresh=2.0 (repeatable)")
+    g.add_argument("--seed", type=int, default=None, help="root seed of every random draw (default 0)")
+    g.add_argument("--backend", choices=("sep", "sextractor"), default=None,
+                   help="detector: SEP (default) or the SExtractor binary")
+    g.add_argument("--thresh", type=float, default=None, help="detection threshold in sigma (DETECT_THRESH, 1.5)")
+    g.add_argument("--minarea", type=int, default=None, help="minimum area in pixels (DETECT_MINAREA, 5)")
+    g.add_argument("--no-bnb", action="store_true", help="do not make the bright-and-big image")
+    o = p.add_argument_group("output")
+    o.add_argument("--quiet", action="store_true", help="print only errors")
+    o.add_argument("--debug", action="store_true", help="show tracebacks of errors")
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog="comest-bayes",
+        description="Completeness and purity of source detection on an astronomical image, by "
+                    "injection and recovery (ComEst method) with Bayesian uncertainties.",
+    )
+    parser.add_argument("--version", action="version", version=f"%(prog)s {__version__}")
+    sub = parser.add_subparsers(dest="command", metavar="COMMAND")
+
+    run = sub.add_parser("run", help="run every stage on an image",
+                         description="Detect sources, build the source-free image and continue through "
+                                     "every stage, writing all outputs under --out.")
+    run.add_argument("image", help="FITS image")
+    run.add_argument("--out", required=True, help="run directory (new, empty, or a run to resume)")
+    img = run.add_argument_group("image facts")
+    img.add_argument("--hdu", type=int, default=None, help="HDU of the image (default: first 2-D image)")
+    img.add_argument("--zp", type=float, default=None,
+                     help="zero point: magnitude of one image unit (default: header MAGZERO, MAGZPT, ...)")
+    img.add_argument("--pixel-scale", type=float, default=None,
+                     help="arcsec per pixel (default: from the WCS; required without one)")
+    img.add_argument("--fwhm", type=float, default=None,
+                     help="seeing FWHM in pixels (default: estimated from stars on the image)")
+    img.add_argument("--gain", type=float, default=None, help="e-/image unit (default: header GAIN)")
+    img.add_argument("--saturation", type=float, default=None, help="saturation level (default: header SATURATE)")
+    img.add_argument("--weight", default=None, help="weight map FITS of the same shape")
+    img.add_argument("--weight-type", choices=("ivar", "rms", "var"), default="ivar",
+                     help="what the weight map holds (default ivar = inverse variance)")
+    img.add_argument("--weight-hdu", type=int, default=None)
+    img.add_argument("--mask", default=None, help="mask FITS of the same shape (non-zero = bad)")
+    img.add_argument("--mask-hdu", type=int, default=None)
+    img.add_argument("--mask-bits", type=int, default=None, help="only these bits of the mask mark bad pixels")
+    _add_config_options(run)
+
+    demo = sub.add_parser("demo", help="synthesize the built-in demo tile and run every stage on it",
+                          description="Make a realistic synthetic survey tile with GalSim (TAN WCS, zero point, "
+                                      "gain, galaxies, stars incl. saturated ones, a weight map with a depth "
+                                      "gradient and a chip gap) and run the whole pipeline on it.")
+    demo.add_argument("--out", default="comest-demo", help="run directory (default ./comest-demo)")
+    demo.add_argument("--size", type=int, default=3000, help="tile size in pixels (default 3000)")
+    _add_config_options(demo)
+    return parser
+
+
+def _config_from_args(args):
+    from .config import load_config
+
+    overrides = list(args.overrides)
+    if args.backend is not None:
+        overrides.append(f"detection.backend={args.backend}")
+    if args.thresh is not None:
+        overrides.append(f"detection.thresh={args.thresh}")
+    if args.minarea is not None:
+        overrides.append(f"detection.minarea={args.minarea}")
+    if args.no_bnb:
+        overrides.append("sourcefree.bnb=false")
+    return load_config(args.config, overrides, seed=args.seed)
+
+
+def _cmd_run(args, log) -> int:
+    from .pipeline import ImageOptions, run_pipeline
+
+    config = _config_from_args(args)
+    options = ImageOptions(path=args.image, hdu=args.hdu, zp=args.zp, pixel_scale=args.pixel_scale, fwhm=args.fwhm,
+                           gain=args.gain, saturation=args.saturation, weight=args.weight,
+                           weight_type=args.weight_type, weight_hdu=args.weight_hdu, mask=args.mask,
+                           mask_hdu=args.mask_hdu, mask_bits=args.mask_bits)
+    result = run_pipeline(options, config, args.out, log=log)
+    log(f"done: outputs in {result.out_dir}")
+    return 0
+
+
+def _cmd_demo(args, log) -> int:
+    from .demo import make_demo_tile, write_demo_tile
+    from .pipeline import ImageOptions, run_pipeline
+    from .rundir import RunDirectory
+
+    config = _config_from_args(args)
+    if args.size < 256:
+        raise ComestError(f"--size {args.size} is too small for a meaningful demo; use at least 256.")
+    out = Path(args.out)
+    if not (out / "run.json").exists():
+        RunDirectory(out, {}).check()  # refuses a non-empty directory that is not a run
+    inputs = out / "inputs"
+    image_path = inputs / "demo_image.fits"
+    marker = inputs / f"demo_seed{config.seed}_size{args.size}.done"
+    if not marker.exists():
+        if inputs.exists() and any(inputs.glob("demo_seed*.done")):
+            raise ComestError(f"{str(inputs)!r} holds a demo tile made with other --seed/--size; "
+                              f"choose another --out or remove it.")
+        t0 = time.perf_counter()
+        log(f"demo: synthesizing a {args.size}x{args.size} tile (seed {config.seed}) ...")
+        tile = make_demo_tile(seed=config.seed, size=args.size)
+        inputs.mkdir(parents=True, exist_ok=True)
+        write_demo_tile(tile, inputs)
+        marker.write_text("complete\n")
+        log(f"demo: tile with {len(tile.truth)} true sources written to {inputs} in {time.perf_counter() - t0:.1f} s")
+    options = ImageOptions(path=str(image_path), weight=str(inputs / "demo_weight.fits"), weight_type="ivar",
+                           mask=str(inputs / "demo_mask.fits"))
+    result = run_pipeline(options, config, out, log=log)
+    log(f"done: outputs in {result.out_dir}")
+    return 0
+
+
+def main(argv=None) -> int:
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    if args.command is None:
+        parser.print_help()
+        return 2
+    quiet = getattr(args, "quiet", False)
+
+    def log(line: str) -> None:
+        if not quiet:
+            print(line, flush=True)
+
+    handler = {"run": _cmd_run, "demo": _cmd_demo}[args.command]
+    try:
+        return handler(args, log)
+    except ComestError as exc:
+        if args.debug:
+            raise
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        print("interrupted: rerun the same command to resume where it stopped.", file=sys.stderr)
+        return 130
+
+
+if __name__ == "__main__":  # pragma: no cover
+    sys.exit(main())

@@ -1,0 +1,119 @@
+"""Run independent tasks serially, in local processes, or on Dask.
+
+Every task carries its own seed, so the results do not depend on the
+executor, the number of workers or the completion order.  Results are handed
+to ``on_result`` in the main process as they arrive (it writes them
+atomically), so memory does not grow with the number of tasks and an
+interrupted run loses at most the tasks in flight.
+
+Local processes are started with ``forkserver`` (``spawn`` where that is not
+available), never ``fork``: forking a process after JAX or a threaded BLAS has
+started is unsafe.
+"""
+
+from __future__ import annotations
+
+import multiprocessing as mp
+import os
+from concurrent.futures import ProcessPoolExecutor, as_completed
+from typing import Any, Callable, Iterable, Sequence
+
+from .errors import BackendUnavailableError, ConfigError
+
+__all__ = ["run_tasks", "EXECUTORS", "default_workers"]
+
+EXECUTORS = ("serial", "processes", "dask")
+
+
+def default_workers() -> int:
+    """Cores available to this process."""
+    try:
+        return len(os.sched_getaffinity(0))
+    except AttributeError:  # pragma: no cover - not Linux
+        return os.cpu_count() or 1
+
+
+def _progress(total: int, desc: str, enabled: bool):
+    from tqdm.auto import tqdm
+
+    return tqdm(total=total, desc=desc, unit="task", disable=not enabled or total == 0, leave=False)
+
+
+def _mp_context():
+    methods = mp.get_all_start_methods()
+    return mp.get_context("forkserver" if "forkserver" in methods else "spawn")
+
+
+def run_tasks(fn: Callable[[Any], Any], tasks: Sequence, *, on_result: Callable[[Any, Any], None],
+              executor: str = "serial", workers: int = 1, scheduler: str | None = None,
+              progress: bool = False, desc: str = "tasks") -> None:
+    """Apply ``fn`` to every task and pass ``(task, result)`` to ``on_result``.
+
+    Parameters
+    ----------
+    fn : callable
+        A module-level (picklable) function of one task.
+    tasks : sequence
+        Picklable task descriptions.
+    on_result : callable
+        Called in the main process, in completion order.
+    executor : {"serial", "processes", "dask"}
+        Where tasks run.  ``dask`` connects to ``scheduler`` (an address such
+        as ``tcp://host:8786``) or starts a local cluster of ``workers``
+        single-threaded worker processes.  Dask workers must see the same
+        filesystem as the main process (the run directory's inputs).
+    workers : int
+        Local worker processes (``processes`` and a local Dask cluster).
+    progress : bool
+        Show a progress bar.
+    """
+    if executor not in EXECUTORS:
+        raise ConfigError(f"unknown executor {executor!r}; use one of {EXECUTORS}.")
+    tasks = list(tasks)
+    if not tasks:
+        return
+    with _progress(len(tasks), desc, progress) as bar:
+        if executor == "serial" or (executor == "processes" and workers <= 1):
+            for task in tasks:
+                on_result(task, fn(task))
+                bar.update()
+        elif executor == "processes":
+            with ProcessPoolExecutor(max_workers=min(workers, len(tasks)), mp_context=_mp_context()) as pool:
+                futures = {pool.submit(fn, task): task for task in tasks}
+                try:
+                    for fut in as_completed(futures):
+                        on_result(futures[fut], fut.result())
+                        bar.update()
+                except BaseException:
+                    for fut in futures:
+                        fut.cancel()
+                    raise
+        else:
+            _run_dask(fn, tasks, on_result, workers, scheduler, bar)
+
+
+def _run_dask(fn, tasks: Iterable, on_result, workers: int, scheduler: str | None, bar) -> None:
+    try:
+        from distributed import Client, LocalCluster, as_completed as dask_completed
+    except ImportError:
+        raise BackendUnavailableError(
+            "the Dask executor needs dask.distributed: pip install 'comest-bayes[dask]' "
+            "(or pip install 'dask[distributed]')."
+        ) from None
+    cluster = None
+    if scheduler:
+        client = Client(scheduler)
+    else:
+        cluster = LocalCluster(n_workers=max(1, workers), threads_per_worker=1, processes=True,
+                               dashboard_address=None)
+        client = Client(cluster)
+    try:
+        futures = client.map(fn, tasks, pure=False)
+        index = {f.key: t for f, t in zip(futures, tasks)}
+        for fut in dask_completed(futures):
+            on_result(index[fut.key], fut.result())
+            bar.update()
+    finally:
+        client.close()
+        if cluster is not None:
+            cluster.close()
