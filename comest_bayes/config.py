@@ -426,11 +426,10 @@ def _coerce(section: str, name: str, default: Any, value: Any) -> Any:
         if isinstance(default, int):
             if isinstance(value, bool):
                 raise ValueError
-            if isinstance(value, str):
-                value = float(value)
-            if isinstance(value, float) and not value.is_integer():
+            number = float(value) if isinstance(value, str) else value
+            if isinstance(number, float) and not number.is_integer():
                 raise ValueError
-            return int(value)
+            return int(number)
         if isinstance(default, float):
             if isinstance(value, bool):
                 raise ValueError
