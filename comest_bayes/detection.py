@@ -123,8 +123,9 @@ def noise_map(mode: str, rms: np.ndarray, global_rms: float, weight_noise: np.nd
         if weight_noise is None:
             raise ConfigError("detection.noise='weight' needs a weight map; pass --weight FILE or use "
                               "detection.noise=background.")
-        good = ~mask & np.isfinite(weight_noise)
-        scale = float(np.median(rms[good]) / np.median(weight_noise[good]))
+        good = ~mask & np.isfinite(weight_noise) & (weight_noise > 0)
+        # median of per-pixel ratios: robust when the weight map has several depth levels
+        scale = float(np.median(rms[good] / weight_noise[good]))
         out = (weight_noise * scale).astype(np.float32)
     elif mode == "global":
         out = np.full(rms.shape, global_rms, dtype=np.float32)
@@ -132,6 +133,7 @@ def noise_map(mode: str, rms: np.ndarray, global_rms: float, weight_noise: np.nd
         out = rms.astype(np.float32, copy=True)
     else:  # pragma: no cover - guarded by DetectionConfig
         raise ConfigError(f"unknown detection.noise mode {mode!r}")
+    out = np.ascontiguousarray(out, dtype=np.float32)
     fill = float(np.median(out[~mask])) if (~mask).any() else 1.0
     out[mask | ~np.isfinite(out)] = fill
     return out, mode
@@ -294,7 +296,7 @@ def measure(data_sub, objs, *, noise, mask, back, config: DetectionConfig, zerop
         ra = dec = np.full(n, np.nan)
     return {
         "id": np.arange(1, n + 1), "x": x, "y": y, "xwin": xwin, "ywin": ywin, "ra": ra, "dec": dec,
-        "a": objs["a"], "b": objs["b"], "theta": theta, "npix": objs["npix"], "peak": objs["peak"],
+        "a": objs["a"], "b": objs["b"], "theta": theta, "npix": objs["tnpix"], "peak": objs["peak"],
         "flux_iso": objs["flux"], "kron_radius": kron, "flux_auto": flux_auto, "fluxerr_auto": fluxerr_auto,
         "mag_auto": mag_auto, "magerr_auto": magerr_auto, "snr_auto": snr, "flux_aper": flux_aper,
         "fluxerr_aper": fluxerr_aper, "mag_aper": mag_aper, "magerr_aper": magerr_aper,
