@@ -49,7 +49,7 @@ DETECTION_COLUMNS = {
     "npix": ("i8", "pix2", "isophotal area above the threshold (ISOAREA_IMAGE)"),
     "peak": ("f8", None, "peak pixel value above the background (FLUX_MAX), image units"),
     "flux_iso": ("f8", None, "isophotal flux (FLUX_ISO), image units"),
-    "kron_radius": ("f8", None, "Kron radius in units of a and b (KRON_RADIUS)"),
+    "kron_radius": ("f8", None, "AUTO aperture scale in units of a and b: max(k * Kron radius, r_min) as SExtractor's KRON_RADIUS; 0 if undefined"),
     "flux_auto": ("f8", None, "flux in the Kron ellipse (FLUX_AUTO), image units"),
     "fluxerr_auto": ("f8", None, "1-sigma error of flux_auto (FLUXERR_AUTO), image units"),
     "mag_auto": ("f8", "mag", "zeropoint - 2.5 log10(flux_auto) (MAG_AUTO)"),

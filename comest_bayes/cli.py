@@ -111,7 +111,7 @@ def _cmd_run(args, log) -> int:
 
 
 def _cmd_demo(args, log) -> int:
-    from .demo import make_demo_tile, write_demo_tile
+    from .demo import MASK_GAP, make_demo_tile, write_demo_tile
     from .pipeline import ImageOptions, run_pipeline
     from .rundir import RunDirectory
 
@@ -136,7 +136,7 @@ def _cmd_demo(args, log) -> int:
         marker.write_text("complete\n")
         log(f"demo: tile with {len(tile.truth)} true sources written to {inputs} in {time.perf_counter() - t0:.1f} s")
     options = ImageOptions(path=str(image_path), weight=str(inputs / "demo_weight.fits"), weight_type="ivar",
-                           mask=str(inputs / "demo_mask.fits"))
+                           mask=str(inputs / "demo_mask.fits"), mask_bits=MASK_GAP)
     result = run_pipeline(options, config, out, log=log)
     log(f"done: outputs in {result.out_dir}")
     return 0

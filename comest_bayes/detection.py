@@ -229,7 +229,8 @@ def detect_array(data: np.ndarray, *, mask: np.ndarray | None = None, weight_noi
     meta = {
         "BACKEND": "sep", "SEPVER": sep.__version__, "ZEROPT": zeropoint, "THRESH": config.thresh,
         "NOISEMOD": mode, "GLOBBACK": float(bkg.globalback), "GLOBRMS": float(bkg.globalrms),
-        "PIXSTACK": int(limits[0]), "SUBOBJ": int(limits[1]),
+        "PIXSTACK": int(limits[0]), "SUBOBJ": int(limits[1]), "BACKSIZE": config.back_size,
+        "BACKFILT": config.back_filtersize,
     }
     catalog = make_catalog(columns, len(config.phot_apertures), meta=meta)
     return DetectionResult(catalog=catalog, segmentation=seg, background=back, rms=rms, noise=noise,
@@ -280,7 +281,9 @@ def measure(data_sub, objs, *, noise, mask, back, config: DetectionConfig, zerop
         flux_radius = np.where(np.isfinite(flux_radius) & (flux_radius > 0), flux_radius, np.sqrt(a * b))
         sig = 2.0 / 2.35 * flux_radius
         xwin, ywin, wflag = sep.winpos(data_sub, x, y, sig, mask=mask)
-        badwin = ~np.isfinite(xwin) | ~np.isfinite(ywin) | (np.hypot(xwin - x, ywin - y) > 2.0 * flux_radius + 1)
+        # A windowed centroid that wandered beyond the object's isophotal scale was pulled by a
+        # neighbour (FLUX_RADIUS, hence the window, is inflated by nearby light): keep the barycentre.
+        badwin = ~np.isfinite(xwin) | ~np.isfinite(ywin) | (np.hypot(xwin - x, ywin - y) > np.maximum(1.0, np.sqrt(a * b)))
         xwin = np.where(badwin, x, xwin)
         ywin = np.where(badwin, y, ywin)
     else:
@@ -297,7 +300,7 @@ def measure(data_sub, objs, *, noise, mask, back, config: DetectionConfig, zerop
     return {
         "id": np.arange(1, n + 1), "x": x, "y": y, "xwin": xwin, "ywin": ywin, "ra": ra, "dec": dec,
         "a": objs["a"], "b": objs["b"], "theta": theta, "npix": objs["tnpix"], "peak": objs["peak"],
-        "flux_iso": objs["flux"], "kron_radius": kron, "flux_auto": flux_auto, "fluxerr_auto": fluxerr_auto,
+        "flux_iso": objs["flux"], "kron_radius": np.where(kron > 0, scale, 0.0) if n else kron, "flux_auto": flux_auto, "fluxerr_auto": fluxerr_auto,
         "mag_auto": mag_auto, "magerr_auto": magerr_auto, "snr_auto": snr, "flux_aper": flux_aper,
         "fluxerr_aper": fluxerr_aper, "mag_aper": mag_aper, "magerr_aper": magerr_aper,
         "flux_radius": flux_radius, "background": back[yp, xp] if n else np.zeros(0),

@@ -161,7 +161,7 @@ def run_pipeline(options: ImageOptions, config: RunConfig, out_dir, *,
     else:
         t0 = time.perf_counter()
         data_sub = image.data - det.background
-        est = estimate_fwhm(data_sub, det.catalog, mask=image.mask)
+        est = estimate_fwhm(data_sub, det.catalog, mask=image.mask, saturation_flagged=image.saturation is not None)
         fwhm = est.as_dict()
         run.record_stage("fwhm", seconds=time.perf_counter() - t0, estimate=fwhm)
     image.fwhm = float(fwhm["fwhm"])

@@ -121,12 +121,6 @@ with at most a few mmag for blends.  What differs:
   detection (ISOAREAF_IMAGE).
 * ``background`` is SExtractor's BACKGROUND, at the barycentre; the SEP
   backend takes it at the peak pixel (same smooth map).
-* Column conventions of :func:`~comest_bayes.detection.detect_array` (as of
-  this writing) that do not follow the schema's SExtractor meaning, so that
-  the two backends differ in these columns: its ``kron_radius`` is SEP's
-  first-moment radius r1, without the factor k and the floor r_min; its
-  ``npix`` is SEP's ``npix``, the filtered area (ISOAREAF_IMAGE; SEP's
-  ``tnpix`` equals ISOAREA_IMAGE).
 """
 
 from __future__ import annotations
@@ -584,7 +578,7 @@ def detect_sextractor(data: np.ndarray, *, mask: np.ndarray | None = None,
     meta = {
         "BACKEND": "sextractor", "SEXVER": version, "ZEROPT": zeropoint, "THRESH": config.thresh,
         "NOISEMOD": mode, "GLOBBACK": globback, "GLOBRMS": globrms, "PIXSTACK": int(pixstack),
-        "OBJSTACK": int(objstack),
+        "OBJSTACK": int(objstack), "BACKSIZE": config.back_size, "BACKFILT": config.back_filtersize,
     }
     catalog = make_catalog(columns, naper, meta=meta)
     return DetectionResult(catalog=catalog, segmentation=seg, background=back, rms=rms, noise=noise,
