@@ -250,7 +250,8 @@ class InjectionConfig:
         quasi-random Halton sequence.
     min_sep : float
         Minimum separation between injections in arcsec, so injections do not
-        blend with each other.
+        blend with each other; 0 (default) for automatic, max(4 FWHM, 4 x the
+        largest half-light radius).
     psf : str
         ``moffat``, ``gaussian``, ``kolmogorov`` (of the image FWHM) or the path
         of a FITS PSF image.
@@ -276,7 +277,7 @@ class InjectionConfig:
     density: float = 15.0
     mag_range: tuple = ()
     placement: str = "uniform"
-    min_sep: float = 5.0
+    min_sep: float = 0.0
     psf: str = "moffat"
     psf_pixel_scale: float = 0.0
     moffat_beta: float = 3.0
