@@ -34,6 +34,18 @@ def _add_config_options(p: argparse.ArgumentParser) -> None:
     g.add_argument("--thresh", type=float, default=None, help="detection threshold in sigma (DETECT_THRESH, 1.5)")
     g.add_argument("--minarea", type=int, default=None, help="minimum area in pixels (DETECT_MINAREA, 5)")
     g.add_argument("--no-bnb", action="store_true", help="do not make the bright-and-big image")
+    g.add_argument("--kinds", default=None,
+                   help="source kinds to inject, comma-separated: point, buldisk, sersic, cosmos, observed "
+                        "(default point,buldisk)")
+    g.add_argument("--nsims", type=int, default=None, help="realizations per kind (default 10)")
+    g.add_argument("--density", type=float, default=None, help="injections per arcmin^2 (default 15)")
+    c = p.add_argument_group("compute (results do not depend on these)")
+    c.add_argument("--ncpu", type=int, default=None, help="worker processes (default: all cores)")
+    c.add_argument("--executor", choices=("processes", "serial", "dask"), default="processes",
+                   help="where realizations run (default local processes)")
+    c.add_argument("--scheduler", default=None,
+                   help="Dask scheduler address, e.g. tcp://host:8786 (implies --executor dask); "
+                        "--executor dask without it starts a local cluster")
     o = p.add_argument_group("output")
     o.add_argument("--quiet", action="store_true", help="print only errors")
     o.add_argument("--debug", action="store_true", help="show tracebacks of errors")
@@ -94,7 +106,25 @@ def _config_from_args(args):
         overrides.append(f"detection.minarea={args.minarea}")
     if args.no_bnb:
         overrides.append("sourcefree.bnb=false")
+    if args.kinds is not None:
+        overrides.append(f"injection.kinds={args.kinds}")
+    if args.nsims is not None:
+        overrides.append(f"injection.nsims={args.nsims}")
+    if args.density is not None:
+        overrides.append(f"injection.density={args.density}")
     return load_config(args.config, overrides, seed=args.seed)
+
+
+def _compute_from_args(args):
+    from .executors import default_workers
+    from .pipeline import ComputeOptions
+
+    workers = args.ncpu if args.ncpu is not None else default_workers()
+    if workers < 1:
+        raise ComestError(f"--ncpu {workers} must be at least 1.")
+    executor = "dask" if args.scheduler else args.executor
+    return ComputeOptions(executor=executor, workers=workers, scheduler=args.scheduler,
+                          progress=not args.quiet and sys.stderr.isatty())
 
 
 def _cmd_run(args, log) -> int:
@@ -105,9 +135,19 @@ def _cmd_run(args, log) -> int:
                            gain=args.gain, saturation=args.saturation, weight=args.weight,
                            weight_type=args.weight_type, weight_hdu=args.weight_hdu, mask=args.mask,
                            mask_hdu=args.mask_hdu, mask_bits=args.mask_bits)
-    result = run_pipeline(options, config, args.out, log=log)
-    log(f"done: outputs in {result.out_dir}")
+    result = run_pipeline(options, config, args.out, log=log, compute=_compute_from_args(args))
+    _final_summary(result, log)
     return 0
+
+
+def _final_summary(result, log) -> None:
+    """A concise end-of-run summary: binned m50 per kind and where the outputs are."""
+    kinds = (result.summary or {}).get("kinds", {})
+    for kind, info in kinds.items():
+        m50 = info.get("m50_binned")
+        log(f"  {kind:<9} binned 50% completeness at {'n/a' if m50 is None else f'{m50:.2f}'} mag "
+            f"({info['counts']['usable']} injections, {info['counts']['realizations']} realizations)")
+    log(f"done: outputs in {result.out_dir} (summary.json, catalogs/, maps/)")
 
 
 def _cmd_demo(args, log) -> int:
@@ -137,8 +177,8 @@ def _cmd_demo(args, log) -> int:
         log(f"demo: tile with {len(tile.truth)} true sources written to {inputs} in {time.perf_counter() - t0:.1f} s")
     options = ImageOptions(path=str(image_path), weight=str(inputs / "demo_weight.fits"), weight_type="ivar",
                            mask=str(inputs / "demo_mask.fits"), mask_bits=MASK_GAP)
-    result = run_pipeline(options, config, out, log=log)
-    log(f"done: outputs in {result.out_dir}")
+    result = run_pipeline(options, config, out, log=log, compute=_compute_from_args(args))
+    _final_summary(result, log)
     return 0
 
 

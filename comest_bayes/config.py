@@ -250,7 +250,7 @@ class InjectionConfig:
         quasi-random Halton sequence.
     min_sep : float
         Minimum separation between injections in arcsec, so injections do not
-        blend with each other; 0 (default) for automatic, max(4 FWHM, 4 x the
+        blend with each other; 0 (default) for automatic, max(4 FWHM, 8 x the
         largest half-light radius).
     psf : str
         ``moffat``, ``gaussian``, ``kolmogorov`` (of the image FWHM) or the path

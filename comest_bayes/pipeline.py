@@ -21,12 +21,12 @@ from astropy.table import Table
 
 from .config import RunConfig
 from .detection import DetectionResult, detect, filter_kernel
-from .errors import DetectionOverflowError
+from .errors import ConfigError, DetectionOverflowError
 from .image import ImageData, load_image
 from .rundir import RunDirectory, file_checksum
 from .seeding import seed_sequence
 
-__all__ = ["ImageOptions", "RunResult", "run_pipeline", "output_header"]
+__all__ = ["ImageOptions", "ComputeOptions", "RunResult", "run_pipeline", "output_header"]
 
 
 @dataclass(frozen=True)
@@ -72,6 +72,28 @@ class RunResult:
     fwhm: dict
     resumed: bool
     timings: dict
+    summary: dict | None = None
+
+
+@dataclass(frozen=True)
+class ComputeOptions:
+    """Where realizations run; results do not depend on these (so they are not part of a run's identity).
+
+    executor : {"serial", "processes", "dask"}; workers : local processes; scheduler : a Dask
+    scheduler address (``dask`` only; default a local cluster); progress : show a progress bar.
+    """
+
+    executor: str = "processes"
+    workers: int = 1
+    scheduler: str | None = None
+    progress: bool = False
+
+    def describe(self) -> str:
+        if self.executor == "dask":
+            return f"Dask ({self.scheduler or f'local cluster of {self.workers} workers'})"
+        if self.executor == "processes" and self.workers > 1:
+            return f"{self.workers} local processes"
+        return "1 process"
 
 
 def output_header(image: ImageData, extra: dict | None = None) -> fits.Header:
@@ -97,7 +119,7 @@ def _load_detection(run: RunDirectory, image: ImageData) -> DetectionResult:
 
 
 def run_pipeline(options: ImageOptions, config: RunConfig, out_dir, *,
-                 log: Callable[[str], None] = print) -> RunResult:
+                 log: Callable[[str], None] = print, compute: ComputeOptions | None = None) -> RunResult:
     """Run every stage on one image, resuming a matching run in ``out_dir``.
 
     Parameters
@@ -110,6 +132,8 @@ def run_pipeline(options: ImageOptions, config: RunConfig, out_dir, *,
         Run directory (see :class:`~comest_bayes.rundir.RunDirectory`).
     log : callable
         Receives one human-readable line per stage.
+    compute : ComputeOptions, optional
+        Executor for the realizations (default: one local process).
 
     Returns
     -------
@@ -185,5 +209,134 @@ def run_pipeline(options: ImageOptions, config: RunConfig, out_dir, *,
             + (f"; BnB keeps {len(sf.kept_ids)} sources" if sf.bnb is not None else "") + f" in {dt:.1f} s")
     timings["sourcefree"] = run.stage_info("sourcefree").get("seconds")
 
+    # ---- injection and recovery ------------------------------------------------------
+    summary = _injection_stages(run, image, det, config, compute or ComputeOptions(), log, timings)
+
     run.update(timings=timings)
-    return RunResult(out_dir=run.path, image=image, detection=det, fwhm=fwhm, resumed=run.resumed, timings=timings)
+    return RunResult(out_dir=run.path, image=image, detection=det, fwhm=fwhm, resumed=run.resumed, timings=timings,
+                     summary=summary)
+
+
+def _auto_mag_range(image: ImageData, det: DetectionResult) -> tuple[float, float]:
+    """(m5 - 5, m5 + 1.5) around the 5-sigma point-source depth of the median noise."""
+    from .depth import point_source_depth
+
+    sigma = float(np.median(det.noise[~image.mask]))
+    m5 = float(point_source_depth(sigma, image.zeropoint, image.fwhm, 5.0))
+    return (round(m5 - 5.0, 2), round(m5 + 1.5, 2))
+
+
+def _injection_stages(run: RunDirectory, image: ImageData, det: DetectionResult, config: RunConfig,
+                      compute: "ComputeOptions", log, timings: dict) -> dict:
+    from . import ratios as R
+    from .detection import detect_array
+    from .executors import run_tasks
+    from .recovery import RealizationTask, SimContext, merge_realizations, realization_file, run_realization, \
+        write_realization
+    from .rundir import atomic_path
+    from .summary import SUMMARY_FORMAT, depth_summary, kind_binned, kind_summary, maps_hdulist
+
+    inj = config.injection
+    base_name = "bnb.fits" if inj.on == "bnb" else "sfi.fits"
+    if not run.file(base_name).exists():
+        raise ConfigError(f"injection.on={inj.on!r} needs {base_name}, which this run did not make; "
+                          f"set sourcefree.bnb=true or injection.on='sfi'.")
+    header = output_header(image)
+
+    # ---- baseline: what the detector finds on the bare base image ------------------
+    if not run.stage_done("baseline"):
+        t0 = time.perf_counter()
+        base = fits.getdata(run.file(base_name)).astype(np.float32)
+        weight_noise = det.noise if det.meta.get("noisemod") == "weight" else None
+        if config.detection.backend == "sextractor":
+            from .sextractor import detect_sextractor as _det
+        else:
+            _det = detect_array
+        bdet = _det(base, mask=image.mask, weight_noise=weight_noise, zeropoint=image.zeropoint, gain=image.gain,
+                    saturation=image.saturation, wcs=image.wcs, config=config.detection)
+        files = [run.write_table("baseline.fits", bdet.catalog),
+                 run.write_image("mask.fits", image.mask.astype(np.uint8), header)]
+        mag_range = tuple(inj.mag_range) if inj.mag_range else _auto_mag_range(image, det)
+        run.record_stage("baseline", files=files, seconds=time.perf_counter() - t0, nsources=len(bdet.catalog),
+                         mag_range=list(mag_range), base=base_name)
+        log(f"baseline: {len(bdet.catalog)} sources detected on the bare {base_name} "
+            f"(counted as pre-existing, not false); injections span {mag_range[0]:.2f}-{mag_range[1]:.2f} mag")
+    mag_range = tuple(run.stage_info("baseline")["mag_range"])
+    timings["baseline"] = run.stage_info("baseline").get("seconds")
+
+    ctx = SimContext(
+        base_path=str(run.file(base_name)), mask_path=str(run.file("mask.fits")), noise_path=str(run.file("noise.fits")),
+        baseline_path=str(run.file("baseline.fits")), detection_path=str(run.file("detection.fits")),
+        shape=tuple(image.shape), wcs_header=None if image.wcs is None else image.wcs.to_header(relax=True).tostring(),
+        zeropoint=image.zeropoint, gain=image.gain, saturation=image.saturation, pixel_scale=image.pixel_scale,
+        fwhm=float(image.fwhm), mag_range=mag_range, noise_mode=str(det.meta.get("noisemod", "background")), detection=config.detection, injection=inj,
+        matching=config.matching, root_seed=config.seed,
+        image_dir=str(run.file("sims")) if inj.write_images else None)
+
+    sims = run.file("sims")
+    todo = [RealizationTask(ctx, kind, i) for kind in inj.kinds for i in range(inj.nsims)
+            if not realization_file(sims, kind, i).exists()]
+    ndone = len(inj.kinds) * inj.nsims - len(todo)
+    failures: list[str] = []
+    if todo:
+        t0 = time.perf_counter()
+        log(f"inject: {len(todo)} realizations to run ({ndone} done earlier) of kinds {', '.join(inj.kinds)} "
+            f"on {compute.describe()}")
+
+        def on_result(task, result):
+            if result.error is not None:
+                failures.append(f"{result.kind} #{result.index}")
+                log(f"warning: realization {result.kind} #{result.index} failed; it will be retried on the "
+                    f"next run:\n{result.error.strip().splitlines()[-1]}")
+                return
+            write_realization(result, sims)
+
+        run_tasks(run_realization, todo, on_result=on_result, executor=compute.executor, workers=compute.workers,
+                  scheduler=compute.scheduler, progress=compute.progress, desc="realizations")
+        timings["inject"] = round(time.perf_counter() - t0, 3)
+        log(f"inject: {len(todo) - len(failures)} realizations in {timings['inject']:.1f} s"
+            + (f"; {len(failures)} failed" if failures else ""))
+    else:
+        log(f"inject: all {ndone} realizations done earlier")
+
+    # ---- merge, ratios, summary --------------------------------------------------------
+    t0 = time.perf_counter()
+    edges = R.magnitude_edges(mag_range[0], mag_range[1], config.ratios.mag_bin)
+    kinds = {}
+    run.file("catalogs").mkdir(exist_ok=True)
+    run.file("maps").mkdir(exist_ok=True)
+    stage_seconds = {}
+    for kind in inj.kinds:
+        done = [i for i in range(inj.nsims) if realization_file(sims, kind, i).exists()]
+        if not done:
+            log(f"warning: no realization of kind {kind!r} finished; it is left out of summary.json")
+            continue
+        merged = merge_realizations(sims, kind, done)
+        stage_seconds[kind] = merged.pop("seconds")
+        for name in ("injected", "matched", "unmatched", "false", "outcomes"):
+            run.write_table(f"catalogs/{kind}_{name}.fits", merged[name])
+        comp = kind_binned(merged, edges, config)["completeness"]
+        m50 = R.magnitude_at(comp, 0.5)
+        map_edges = (np.asarray(config.ratios.map_mag_edges, float) if config.ratios.map_mag_edges
+                     else R.default_map_mag_edges(m50 if np.isfinite(m50) else float(np.mean(mag_range))))
+        maps_name = f"maps/{kind}_maps.fits"
+        hdul = maps_hdulist(merged, image_shape=image.shape, pixel_scale=image.pixel_scale, wcs=image.wcs,
+                            config=config, mag_edges=map_edges)
+        with atomic_path(run.file(maps_name)) as tmp:
+            hdul.writeto(tmp)
+        kinds[kind] = kind_summary(merged, edges, config, nreal=len(done), maps_file=maps_name, map_edges=map_edges)
+        kinds[kind]["seconds"] = {k: round(v, 2) for k, v in stage_seconds[kind].items()}
+        c = kinds[kind]["counts"]
+        log(f"ratios: {kind}: {c['detected']}/{c['usable']} usable injections detected, {c['false']} false "
+            f"detections; binned m50 = {kinds[kind]['m50_binned'] if kinds[kind]['m50_binned'] is None else round(kinds[kind]['m50_binned'], 2)}")
+    summary = {
+        "format": SUMMARY_FORMAT,
+        "image": image.facts(),
+        "depth": depth_summary(det.noise, image.mask, zeropoint=image.zeropoint, fwhm=image.fwhm,
+                               det_mags=det.catalog["mag_auto"]),
+        "kinds": kinds,
+        "failed_realizations": failures,
+    }
+    run.write_json("summary.json", summary)
+    timings["ratios"] = round(time.perf_counter() - t0, 3)
+    return summary

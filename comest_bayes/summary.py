@@ -1,0 +1,177 @@
+"""The raw binned ratios of a run and the ``summary.json`` they go into.
+
+``summary.json`` (format version 1; keys are stable, new keys may be added)::
+
+    {
+      "format": 1,
+      "image": {...facts: zero point, pixel scale, FWHM and their sources...},
+      "depth": {
+        "point_source_5sigma": m,          # optimal-photometry 5-sigma depth, median noise
+        "aperture_5sigma": m,              # 5-sigma in a circular aperture of 2 FWHM diameter
+        "aperture_diameter_pix": d,
+        "histogram": {...} | null          # completeness from the detected number counts
+      },
+      "kinds": {
+        "<kind>": {
+          "counts": {"realizations", "injected", "usable", "detected", "false", "preexisting"},
+          "mag_range": [bright, faint],
+          "binned": {
+            "mag_edges": [...], "mag_centers": [...],
+            "completeness": [...], "completeness_lower": [...], "completeness_upper": [...],
+            "completeness_n": [...], "completeness_k": [...],
+            "purity": [...], "purity_lower": [...], "purity_upper": [...], "purity_n": [...], "purity_k": [...],
+            "detection_rate": [...], "detection_rate_lower": [...], "detection_rate_upper": [...],
+            "confidence": 0.6827, "interval": "wilson"
+          },
+          "m50_binned": m | null,          # where the binned completeness first falls below 0.5
+          "maps": {"file": "maps/<kind>_maps.fits", "mag_edges": [...], "bin_arcmin": b}
+        }
+      }
+    }
+
+Completeness bins true magnitudes of usable injections; purity bins measured
+magnitudes (``matching.mag_column``) of detections, leaving out pre-existing
+ones; the detection rate divides all counted detections in a measured bin by
+the injections in the same true bin (so it can exceed 1).  Empty bins have
+``n = 0`` and ``null`` ratios.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from astropy.io import fits
+
+from . import ratios as R
+from .config import RunConfig
+
+__all__ = ["kind_summary", "maps_hdulist", "depth_summary", "SUMMARY_FORMAT"]
+
+SUMMARY_FORMAT = 1
+
+
+def _flat(prefix: str, br: R.BinnedRatio) -> dict:
+    d = br.to_dict()
+    out = {prefix: d["ratio"], f"{prefix}_lower": d["lower"], f"{prefix}_upper": d["upper"]}
+    if prefix != "detection_rate":
+        out[f"{prefix}_n"] = d["n"]
+        out[f"{prefix}_k"] = d["k"]
+    return out
+
+
+def _none_if_nan(v):
+    return None if v is None or not np.isfinite(v) else float(v)
+
+
+def kind_binned(merged: dict, edges: np.ndarray, config: RunConfig) -> dict:
+    """Completeness, purity and detection rate of one kind (``BinnedRatio`` objects)."""
+    truth, det = merged["injected"], merged["detections"]
+    conf, interval = config.ratios.confidence, config.ratios.interval
+    usable = np.asarray(truth["usable"], bool)
+    detected = np.asarray(truth["detected"], bool)
+    comp = R.completeness(np.asarray(truth["mag"], float), detected, edges, masked=~usable,
+                          confidence=conf, interval=interval)
+    det_mag = np.asarray(det[config.matching.mag_column], float)
+    if det_mag.ndim == 2:
+        det_mag = det_mag[:, 0]
+    pre = np.asarray(det["preexisting"], bool)
+    matched = np.asarray(det["matched"], bool)
+    pur = R.purity(det_mag, matched, edges, excluded=pre, confidence=conf, interval=interval)
+    rate = R.detection_rate(det_mag, np.asarray(truth["mag"], float), edges, det_excluded=pre,
+                            truth_masked=~usable, confidence=conf)
+    return {"completeness": comp, "purity": pur, "detection_rate": rate}
+
+
+def kind_summary(merged: dict, edges: np.ndarray, config: RunConfig, *, nreal: int, maps_file: str | None,
+                 map_edges=None) -> dict:
+    """The ``summary.json`` entry of one kind."""
+    truth, det = merged["injected"], merged["detections"]
+    b = kind_binned(merged, edges, config)
+    binned = {"mag_edges": b["completeness"].to_dict()["edges"], "mag_centers": b["completeness"].to_dict()["centers"]}
+    for name, br in b.items():
+        binned.update(_flat(name, br))
+    binned["confidence"] = config.ratios.confidence
+    binned["interval"] = config.ratios.interval
+    usable = np.asarray(truth["usable"], bool)
+    counts = {
+        "realizations": int(nreal),
+        "injected": int(len(truth)),
+        "usable": int(usable.sum()),
+        "detected": int((np.asarray(truth["detected"], bool) & usable).sum()),
+        "false": int(np.asarray(det["false"], bool).sum()),
+        "preexisting": int(np.asarray(det["preexisting"], bool).sum()),
+    }
+    out = {"counts": counts, "mag_range": [float(edges[0]), float(edges[-1])], "binned": binned,
+           "m50_binned": _none_if_nan(R.magnitude_at(b["completeness"], 0.5))}
+    if maps_file is not None:
+        out["maps"] = {"file": maps_file, "mag_edges": [float(v) for v in map_edges],
+                       "bin_arcmin": config.ratios.map_bin_arcmin}
+    return out
+
+
+def maps_hdulist(merged: dict, *, image_shape, pixel_scale: float, wcs, config: RunConfig, mag_edges) -> fits.HDUList:
+    """Completeness and purity maps f(x, y, m) as FITS cubes with the binned grid's WCS.
+
+    HDUs: ``COMPLETENESS``, ``COMPLETENESS_N``, ``COMPLETENESS_LO``,
+    ``COMPLETENESS_HI``, ``PURITY``, ``PURITY_N``; each is a cube
+    (nmag, ny_bins, nx_bins) whose first two axes carry the celestial WCS of the
+    binned grid (rotation included) and whose plane ``i`` covers magnitudes
+    ``MAGLO{i}``-``MAGHI{i}`` (header keywords).
+    """
+    truth, det = merged["injected"], merged["detections"]
+    bin_pix = R.map_bin_pixels(config.ratios.map_bin_arcmin, pixel_scale)
+    conf, interval = config.ratios.confidence, config.ratios.interval
+    usable = np.asarray(truth["usable"], bool)
+    comp = R.completeness_map(np.asarray(truth["x"], float), np.asarray(truth["y"], float),
+                              np.asarray(truth["mag"], float), np.asarray(truth["detected"], bool),
+                              image_shape=image_shape, bin_pix=bin_pix, mag_edges=mag_edges, masked=~usable,
+                              confidence=conf, interval=interval)
+    det_mag = np.asarray(det[config.matching.mag_column], float)
+    if det_mag.ndim == 2:
+        det_mag = det_mag[:, 0]
+    pur = R.purity_map(np.asarray(det["xwin"], float), np.asarray(det["ywin"], float), det_mag,
+                       np.asarray(det["matched"], bool), image_shape=image_shape, bin_pix=bin_pix,
+                       mag_edges=mag_edges, excluded=np.asarray(det["preexisting"], bool), confidence=conf,
+                       interval=interval)
+    header = fits.Header()
+    if wcs is not None:
+        header.update(R.map_wcs(wcs, bin_pix, comp.shape).to_header(relax=True))
+    header["BINPIX"] = (float(bin_pix), "side of a map bin in image pixels")
+    for i, (lo, hi) in enumerate(zip(mag_edges[:-1], mag_edges[1:])):
+        header[f"MAGLO{i}"] = (float(lo), f"bright edge of plane {i} (mag)")
+        header[f"MAGHI{i}"] = (float(hi), f"faint edge of plane {i} (mag)")
+    hdus = [fits.PrimaryHDU()]
+    for name, arr in (("COMPLETENESS", comp.ratio), ("COMPLETENESS_N", comp.n), ("COMPLETENESS_LO", comp.lower),
+                      ("COMPLETENESS_HI", comp.upper), ("PURITY", pur.ratio), ("PURITY_N", pur.n)):
+        hdus.append(fits.ImageHDU(np.asarray(arr, dtype=np.float32 if arr.dtype.kind == "f" else np.int32),
+                                  header=header, name=name))
+    return fits.HDUList(hdus)
+
+
+def depth_summary(noise: np.ndarray, mask: np.ndarray, *, zeropoint: float, fwhm: float, det_mags) -> dict:
+    """Depth references: N-sigma limiting magnitudes and the histogram-count completeness."""
+    from .depth import histogram_completeness, limiting_magnitude, point_source_depth
+
+    sigma = float(np.median(noise[~mask])) if (~mask).any() else float(np.median(noise))
+    diam = 2.0 * fwhm
+    out = {
+        "noise_median": sigma,
+        "point_source_5sigma": float(point_source_depth(sigma, zeropoint, fwhm, 5.0)),
+        "aperture_5sigma": float(limiting_magnitude(sigma, zeropoint, aperture_diameter_pix=diam, nsigma=5.0)),
+        "aperture_diameter_pix": diam,
+        "histogram": None,
+    }
+    mags = np.asarray(det_mags, float)
+    mags = mags[np.isfinite(mags)]
+    if mags.size >= 50:
+        edges = R.magnitude_edges(np.floor(mags.min()), np.ceil(mags.max()), 0.25)
+        try:
+            h = histogram_completeness(mags, edges)
+        except ValueError as exc:  # too few sources in the fit range
+            out["histogram_error"] = str(exc)
+        else:
+            out["histogram"] = {"slope": float(h.slope), "slope_err": float(h.slope_err),
+                                "fit_range": [float(v) for v in h.fit_range],
+                                "mag_centers": [float(v) for v in h.centers],
+                                "completeness": [_none_if_nan(v) for v in h.completeness],
+                                "m50": _none_if_nan(h.magnitude_at(0.5))}
+    return out
