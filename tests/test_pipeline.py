@@ -7,7 +7,7 @@ import pytest
 from astropy.io import fits
 
 from comest_bayes.cli import main
-from comest_bayes.config import load_config
+from comest_bayes.config import load_config as _load_config
 from comest_bayes.demo import MASK_GAP, make_demo_tile, write_demo_tile
 from comest_bayes.pipeline import ImageOptions, run_pipeline
 
@@ -19,6 +19,11 @@ def small_tile(tmp_path_factory):
     tile = make_demo_tile(seed=3, size=700, star_density=6.0)
     paths = write_demo_tile(tile, d)
     return tile, paths
+
+
+def load_config(**kw):
+    """Two realizations per kind keep these end-to-end tests fast."""
+    return _load_config(overrides=["injection.nsims=2"], **kw)
 
 
 def _options(paths, **kw):
@@ -146,7 +151,8 @@ def test_cli_debug_shows_the_traceback(small_tile, tmp_path):
 def test_cli_run_refuses_a_directory_with_another_run(small_tile, tmp_path, capsys):
     _, paths = small_tile
     out = tmp_path / "run"
-    args = ["run", str(paths["image"]), "--weight", str(paths["weight"]), "--out", str(out), "--quiet"]
+    args = ["run", str(paths["image"]), "--weight", str(paths["weight"]), "--out", str(out), "--quiet",
+            "--nsims", "1"]
     assert main(args) == 0
     before = (out / "run.json").read_text()
     assert main(args + ["--thresh", "3"]) == 2
@@ -157,11 +163,11 @@ def test_cli_run_refuses_a_directory_with_another_run(small_tile, tmp_path, caps
 @pytest.mark.slow
 def test_cli_demo_small_runs_every_stage_and_resumes(tmp_path, capsys):
     out = tmp_path / "demo"
-    assert main(["demo", "--out", str(out), "--size", "1000", "--seed", "4"]) == 0
+    assert main(["demo", "--out", str(out), "--size", "1000", "--seed", "4", "--nsims", "2"]) == 0
     printed = capsys.readouterr().out
     assert "detect:" in printed and "sourcefree:" in printed
     assert (out / "inputs" / "demo_image.fits").exists() and (out / "sfi.fits").exists()
-    assert main(["demo", "--out", str(out), "--size", "1000", "--seed", "4"]) == 0
+    assert main(["demo", "--out", str(out), "--size", "1000", "--seed", "4", "--nsims", "2"]) == 0
     assert "resuming" in capsys.readouterr().out
     # another seed in the same directory is refused
-    assert main(["demo", "--out", str(out), "--size", "1000", "--seed", "5"]) == 2
+    assert main(["demo", "--out", str(out), "--size", "1000", "--seed", "5", "--nsims", "2"]) == 2
