@@ -28,6 +28,10 @@ from .seeding import seed_sequence
 
 __all__ = ["ImageOptions", "ComputeOptions", "RunResult", "run_pipeline", "output_header"]
 
+#: Narrowest target PSF (FWHM, arcsec) COSMOS galaxies may be drawn with: the HST/ACS F814W PSF is
+#: about 0.12" FWHM (Koekemoer et al. 2007) and must be deconvolved (GalSim RealGalaxy).
+COSMOS_MIN_FWHM_ARCSEC = 0.15
+
 
 @dataclass(frozen=True)
 class ImageOptions:
@@ -149,45 +153,68 @@ def run_pipeline(options: ImageOptions, config: RunConfig, out_dir, *,
         from .sextractor import find_sextractor
 
         find_sextractor()
+    if "cosmos" in config.injection.kinds:
+        from .sources import load_cosmos
+
+        load_cosmos(config.injection)  # a missing or broken catalog directory is an error now, not later
+    if config.injection.psf not in ("moffat", "gaussian", "kolmogorov") and not Path(config.injection.psf).is_file():
+        raise ConfigError(f"injection.psf={config.injection.psf!r} is neither moffat, gaussian, kolmogorov nor an "
+                          f"existing FITS PSF image.")
     fingerprint = {"input": options.fingerprint(), "config": config.to_dict()}
     run = RunDirectory(out_dir, fingerprint)
-    run.check()
-    run.open()
-    if run.resumed:
-        log(f"resuming the run in {run.path} (finished stages are skipped)")
+    run.check()  # read-only: new run, resume, or refusal
     timings = {}
     header = output_header(image)
 
-    # ---- detection ----------------------------------------------------------------
-    if run.stage_done("detect"):
-        det = _load_detection(run, image)
-        log(f"detect: done earlier ({len(det.catalog)} sources)")
-    else:
+    # ---- detection and seeing: measured before anything is written, so that an image whose
+    # seeing cannot be measured leaves no run behind (the user reruns with --fwhm) ------------
+    det = None
+    det_seconds = None
+    if not run.stage_done("detect"):
         t0 = time.perf_counter()
         try:
-            det = detect(image, config.detection, workdir=run.path)
+            det = detect(image, config.detection, workdir=None)
         except DetectionOverflowError as exc:
             raise DetectionOverflowError(f"{image.path}: {exc}") from None
-        files = [run.write_table("detection.fits", det.catalog)]
-        for name in ("segmentation", "background", "rms", "noise"):
-            files.append(run.write_image(f"{name}.fits", getattr(det, name), header))
-        dt = time.perf_counter() - t0
-        run.record_stage("detect", files=files, seconds=dt, meta=det.meta, nsources=len(det.catalog))
-        log(f"detect: {len(det.catalog)} sources with {config.detection.backend} "
-            f"(threshold {config.detection.thresh} x {det.meta.get('noisemod', 'sigma')} noise) in {dt:.1f} s")
-    timings["detect"] = run.stage_info("detect").get("seconds")
-
-    # ---- seeing FWHM ----------------------------------------------------------------
+        det_seconds = time.perf_counter() - t0
+    fwhm_seconds = None
     if image.fwhm is not None:
         fwhm = {"fwhm": image.fwhm, "fwhm_err": 0.0, "nstars": 0, "method": "given by the user (--fwhm)"}
     elif run.stage_done("fwhm"):
         fwhm = run.stage_info("fwhm")["estimate"]
     else:
+        if det is None:
+            det = _load_detection(run, image)
         t0 = time.perf_counter()
-        data_sub = image.data - det.background
-        est = estimate_fwhm(data_sub, det.catalog, mask=image.mask, saturation_flagged=image.saturation is not None)
+        est = estimate_fwhm(image.data - det.background, det.catalog, mask=image.mask,
+                            saturation_flagged=image.saturation is not None)
         fwhm = est.as_dict()
-        run.record_stage("fwhm", seconds=time.perf_counter() - t0, estimate=fwhm)
+        fwhm_seconds = time.perf_counter() - t0
+
+    fwhm_arcsec = float(fwhm["fwhm"]) * image.pixel_scale
+    if "cosmos" in config.injection.kinds and fwhm_arcsec < COSMOS_MIN_FWHM_ARCSEC:
+        raise ConfigError(
+            f"injection kind 'cosmos' cannot be drawn on this image: COSMOS galaxies are HST/ACS F814W images "
+            f"whose own PSF (FWHM about 0.12\") must be deconvolved, so the target PSF must be broader than "
+            f"{COSMOS_MIN_FWHM_ARCSEC}\" but this image's FWHM is {fwhm_arcsec:.3f}\". Use the sersic or buldisk kinds.")
+
+    run.open()
+    if run.resumed:
+        log(f"resuming the run in {run.path} (finished stages are skipped)")
+    if det_seconds is not None:
+        files = [run.write_table("detection.fits", det.catalog)]
+        for name in ("segmentation", "background", "rms", "noise"):
+            files.append(run.write_image(f"{name}.fits", getattr(det, name), header))
+        run.record_stage("detect", files=files, seconds=det_seconds, meta=det.meta, nsources=len(det.catalog))
+        log(f"detect: {len(det.catalog)} sources with {config.detection.backend} "
+            f"(threshold {config.detection.thresh} x {det.meta.get('noisemod', 'sigma')} noise) in {det_seconds:.1f} s")
+    else:
+        if det is None:
+            det = _load_detection(run, image)
+        log(f"detect: done earlier ({len(det.catalog)} sources)")
+    timings["detect"] = run.stage_info("detect").get("seconds")
+    if fwhm_seconds is not None:
+        run.record_stage("fwhm", seconds=fwhm_seconds, estimate=fwhm)
     image.fwhm = float(fwhm["fwhm"])
     image.provenance.setdefault("fwhm", fwhm["method"])
     log(f"fwhm: {image.fwhm:.2f} px = {image.fwhm * image.pixel_scale:.2f} arcsec ({fwhm['method']})")
