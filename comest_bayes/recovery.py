@@ -36,6 +36,7 @@ Output tables (merged over realizations by :func:`merge_realizations`):
 from __future__ import annotations
 
 import functools
+import os
 import time
 import traceback
 from dataclasses import dataclass, field
@@ -132,17 +133,36 @@ def _wcs_from_text(text: str):
     return WCS(fits.Header.fromstring(text), relax=True)
 
 
-@functools.lru_cache(maxsize=2)
+def _file_key(path: str) -> tuple:
+    """A cache key naming a file's content: a file rewritten under the same path is read again.
+
+    The caches below live as long as the process (a notebook, a serial run, a long-lived Dask
+    worker); keyed by path alone, a second run into a removed and recreated run directory would
+    silently reuse the first run's images.
+    """
+    st = os.stat(path)
+    return (str(path), st.st_mtime_ns, st.st_size, st.st_ino)
+
+
 def _arrays(base_path: str, mask_path: str, noise_path: str):
-    base = fits.getdata(base_path).astype(np.float32)
-    mask = fits.getdata(mask_path).astype(bool)
-    noise = fits.getdata(noise_path).astype(np.float32)
+    return _arrays_cached(_file_key(base_path), _file_key(mask_path), _file_key(noise_path))
+
+
+@functools.lru_cache(maxsize=2)
+def _arrays_cached(base_key: tuple, mask_key: tuple, noise_key: tuple):
+    base = fits.getdata(base_key[0]).astype(np.float32)
+    mask = fits.getdata(mask_key[0]).astype(bool)
+    noise = fits.getdata(noise_key[0]).astype(np.float32)
     return base, mask, noise
 
 
-@functools.lru_cache(maxsize=2)
 def _table(path: str) -> Table:
-    return Table.read(path)
+    return _table_cached(_file_key(path))
+
+
+@functools.lru_cache(maxsize=2)
+def _table_cached(key: tuple) -> Table:
+    return Table.read(key[0])
 
 
 @functools.lru_cache(maxsize=2)
