@@ -250,8 +250,8 @@ class InjectionConfig:
         quasi-random Halton sequence.
     min_sep : float
         Minimum separation between injections in arcsec, so injections do not
-        blend with each other; 0 (default) for automatic, max(4 FWHM, 8 x the
-        largest half-light radius).
+        blend with each other; 0 (default) for automatic: 4 FWHM for point
+        sources, max(4 FWHM, 8 x the largest half-light radius) for galaxies.
     psf : str
         ``moffat``, ``gaussian``, ``kolmogorov`` (of the image FWHM) or the path
         of a FITS PSF image.

@@ -54,7 +54,7 @@ from scipy.special import ndtri
 from .errors import InputError
 from .ratios import first_crossing
 
-__all__ = ["limiting_magnitude", "point_source_depth", "HistogramCompleteness", "histogram_completeness"]
+__all__ = ["noise_equivalent_area", "point_source_depth_nea", "limiting_magnitude", "point_source_depth", "HistogramCompleteness", "histogram_completeness"]
 
 _LN10 = math.log(10.0)
 _FWHM_PER_SIGMA = 2.0 * math.sqrt(2.0 * math.log(2.0))
@@ -151,6 +151,30 @@ def point_source_depth(sigma, zeropoint: float, fwhm_pix: float, nsigma: float =
     # sqrt(4 pi) sigma_psf = sqrt(pi) d / 2 with d = 4 sigma_psf
     return limiting_magnitude(sigma, zeropoint, aperture_diameter_pix=4.0 * sigma_psf, nsigma=nsigma,
                               reduce=reduce)
+
+
+def noise_equivalent_area(psf_image) -> float:
+    """Noise-equivalent area ``1 / sum(p**2)`` of a pixelised PSF ``p`` (normalised here to unit sum).
+
+    The optimal (PSF-weighted) flux of a point source on white noise of
+    per-pixel sigma has error ``sigma * sqrt(NEA)``; for a Gaussian PSF
+    ``NEA = 4 pi sigma_psf**2`` (the value :func:`point_source_depth` assumes).
+    """
+    p = np.asarray(psf_image, dtype=float)
+    total = p.sum()
+    if not np.isfinite(total) or total <= 0:
+        raise ValueError("the PSF image must have a positive, finite sum")
+    p = p / total
+    return float(1.0 / np.sum(p * p))
+
+
+def point_source_depth_nea(sigma, zeropoint: float, nea: float, nsigma: float = 5.0) -> float:
+    """Point-source limiting magnitude ``zeropoint - 2.5 log10(nsigma * sigma * sqrt(nea))``.
+
+    ``nea`` is the PSF's noise-equivalent area in pixels (:func:`noise_equivalent_area`);
+    ``sigma`` a scalar per-pixel noise.
+    """
+    return float(zeropoint - 2.5 * np.log10(nsigma * float(sigma) * np.sqrt(_positive("nea", nea))))
 
 
 @dataclass(frozen=True)

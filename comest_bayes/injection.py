@@ -200,11 +200,12 @@ def _sky_positions(x, y, wcs):
 # --------------------------------------------------------------------------- truth
 
 
-def min_separation_pix(config: InjectionConfig, fwhm_pix: float | None, pixel_scale: float) -> float:
+def min_separation_pix(config: InjectionConfig, fwhm_pix: float | None, pixel_scale: float,
+                       kind: str = "buldisk") -> float:
     """Minimum separation between injections in pixels.
 
     ``config.min_sep`` in arcsec when positive; when 0 (the default) it is
-    automatic: ``max(4 FWHM, 8 hlr_max)``.  With 4 hlr_max, bright bulge+disk
+    automatic: ``4 FWHM`` for point sources, ``max(4 FWHM, 8 hlr_max)`` for galaxies.  With 4 hlr_max, bright bulge+disk
     injections blended with a neighbouring injection often enough to hold the
     bright-end completeness of the demo at 0.99 (the neighbour's light entered
     the Kron aperture and pushed the measured magnitude outside the matching
@@ -213,6 +214,8 @@ def min_separation_pix(config: InjectionConfig, fwhm_pix: float | None, pixel_sc
     if config.min_sep > 0:
         return config.min_sep / pixel_scale
     fwhm_arcsec = (fwhm_pix or 0.0) * pixel_scale
+    if kind == "point":
+        return 4.0 * fwhm_arcsec / pixel_scale
     return max(4.0 * fwhm_arcsec, 8.0 * config.hlr_range[1]) / pixel_scale
 
 
@@ -304,7 +307,7 @@ def make_truth(kind: str, *, shape, mask=None, pixel_scale: float, fwhm_pix: flo
     if n is None:
         n = draw_count(config.density, shape, pixel_scale, rng, border_pix=border_pix)
     placement = place_sources(n, shape, rng, mask=mask, method=config.placement,
-                              min_sep_pix=min_separation_pix(config, fwhm_pix, pixel_scale), border_pix=border_pix)
+                              min_sep_pix=min_separation_pix(config, fwhm_pix, pixel_scale, kind), border_pix=border_pix)
     params = draw_parameters(kind, placement.n, config=config, mag_range=mag_range, rng=rng,
                              pixel_scale=pixel_scale, cosmos=cosmos, population=population)
     m = placement.n

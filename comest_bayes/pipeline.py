@@ -244,12 +244,21 @@ def run_pipeline(options: ImageOptions, config: RunConfig, out_dir, *,
                      summary=summary)
 
 
-def _auto_mag_range(image: ImageData, det: DetectionResult) -> tuple[float, float]:
+def _psf_nea(config: RunConfig, image: ImageData) -> float:
+    """Noise-equivalent area (pixels) of the injection PSF on the image's pixel grid."""
+    from .depth import noise_equivalent_area
+    from .sources import make_psf
+
+    psf = make_psf(config.injection, image.fwhm, image.pixel_scale)
+    return noise_equivalent_area(psf.drawImage(nx=64, ny=64, scale=image.pixel_scale, method="no_pixel").array)
+
+
+def _auto_mag_range(image: ImageData, det: DetectionResult, nea: float) -> tuple[float, float]:
     """(m5 - 5, m5 + 1.5) around the 5-sigma point-source depth of the median noise."""
-    from .depth import point_source_depth
+    from .depth import point_source_depth_nea
 
     sigma = float(np.median(det.noise[~image.mask]))
-    m5 = float(point_source_depth(sigma, image.zeropoint, image.fwhm, 5.0))
+    m5 = point_source_depth_nea(sigma, image.zeropoint, nea, 5.0)
     return (round(m5 - 5.0, 2), round(m5 + 1.5, 2))
 
 
@@ -283,7 +292,7 @@ def _injection_stages(run: RunDirectory, image: ImageData, det: DetectionResult,
                     saturation=image.saturation, wcs=image.wcs, config=config.detection)
         files = [run.write_table("baseline.fits", bdet.catalog),
                  run.write_image("mask.fits", image.mask.astype(np.uint8), header)]
-        mag_range = tuple(inj.mag_range) if inj.mag_range else _auto_mag_range(image, det)
+        mag_range = tuple(inj.mag_range) if inj.mag_range else _auto_mag_range(image, det, _psf_nea(config, image))
         run.record_stage("baseline", files=files, seconds=time.perf_counter() - t0, nsources=len(bdet.catalog),
                          mag_range=list(mag_range), base=base_name)
         log(f"baseline: {len(bdet.catalog)} sources detected on the bare {base_name} "
@@ -301,6 +310,8 @@ def _injection_stages(run: RunDirectory, image: ImageData, det: DetectionResult,
         image_dir=str(run.file("sims")) if inj.write_images else None)
 
     sims = run.file("sims")
+    for stale in sims.glob("*/.tmp-*"):  # a killed run's half-written realization files
+        stale.unlink()
     todo = [RealizationTask(ctx, kind, i) for kind in inj.kinds for i in range(inj.nsims)
             if not realization_file(sims, kind, i).exists()]
     ndone = len(inj.kinds) * inj.nsims - len(todo)
@@ -360,7 +371,7 @@ def _injection_stages(run: RunDirectory, image: ImageData, det: DetectionResult,
         "format": SUMMARY_FORMAT,
         "image": image.facts(),
         "depth": depth_summary(det.noise, image.mask, zeropoint=image.zeropoint, fwhm=image.fwhm,
-                               det_mags=det.catalog["mag_auto"]),
+                               det_mags=det.catalog["mag_auto"], psf_nea=_psf_nea(config, image)),
         "kinds": kinds,
         "failed_realizations": failures,
     }

@@ -15,7 +15,15 @@ Detections on a realization fall in three classes:
   base image too (a kept bright source of a BnB image, or a faint real source
   that surfaces once the bright ones are gone); these are neither injections
   nor false detections, and are left out of purity;
+* **near an unusable injection**: unmatched, within the matching radius of an
+  injection that is not usable (centre on a masked pixel, or stamp cut by the
+  image border), whose light the detector may still see with a spoiled
+  magnitude; left out of purity too;
 * **false**: everything else.
+
+An injection is *usable* when its centre is not masked and it was drawn
+whole (truth ``flag == 0``); only usable injections enter the ratios and the
+outcome table.
 
 Output tables (merged over realizations by :func:`merge_realizations`):
 
@@ -248,7 +256,7 @@ def match_realization(truth: Table, catalog: Table, baseline: Table, noise: np.n
 
     Returns the truth (with ``usable``, ``detected``, ``separation``,
     ``noise`` and the ``det_*`` measured columns) and the detection catalog
-    (with ``matched``, ``injection_id``, ``preexisting`` and ``false``).
+    (with ``matched``, ``injection_id``, ``preexisting``, ``near_unusable`` and ``false``).
     """
     radius = ctx.matching.radius_fwhm * ctx.fwhm
     magcol = ctx.matching.mag_column
@@ -260,13 +268,18 @@ def match_realization(truth: Table, catalog: Table, baseline: Table, noise: np.n
     res = match_one_to_one(np.asarray(truth["x"], float), np.asarray(truth["y"], float),
                            np.asarray(truth["mag"], float), np.asarray(catalog["xwin"], float),
                            np.asarray(catalog["ywin"], float), det_mag, radius=radius, mag_tol=ctx.matching.mag_tol)
-    cls = classify_detections(np.asarray(catalog["xwin"], float), np.asarray(catalog["ywin"], float),
-                              res.det_matched, kept_x=np.asarray(baseline["xwin"], float),
+    dx, dy = np.asarray(catalog["xwin"], float), np.asarray(catalog["ywin"], float)
+    cls = classify_detections(dx, dy, res.det_matched, kept_x=np.asarray(baseline["xwin"], float),
                               kept_y=np.asarray(baseline["ywin"], float), radius=radius)
+    usable = ~np.asarray(truth["masked"], bool) & (np.asarray(truth["flag"]) == 0)
+    # Light of an unusable injection (centre masked, stamp cut by the border) can still be detected,
+    # with a magnitude spoiled by the mask; such detections are neither real false detections nor
+    # countable matches, so they are left out of purity like pre-existing sources.
+    near_unusable = classify_detections(dx, dy, res.det_matched, kept_x=np.asarray(truth["x"], float)[~usable],
+                                        kept_y=np.asarray(truth["y"], float)[~usable], radius=radius).kept
     n = len(truth)
     out = truth.copy(copy_data=False)
     out.meta = {}  # per-realization facts (placement, timings) are not catalog columns
-    usable = ~np.asarray(out["masked"], bool) & (np.asarray(out["flag"]) == 0)
     out["usable"] = usable
     out["detected"] = res.det_of_truth >= 0
     sep = np.full(n, np.nan)
@@ -290,7 +303,8 @@ def match_realization(truth: Table, catalog: Table, baseline: Table, noise: np.n
     dets["injection_id"] = np.where(res.truth_of_det >= 0,
                                     np.asarray(truth["injection_id"])[np.maximum(res.truth_of_det, 0)], -1)
     dets["preexisting"] = cls.kept
-    dets["false"] = cls.false
+    dets["near_unusable"] = near_unusable & ~cls.kept
+    dets["false"] = cls.false & ~near_unusable
     return out, dets
 
 

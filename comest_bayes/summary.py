@@ -6,14 +6,17 @@
       "format": 1,
       "image": {...facts: zero point, pixel scale, FWHM and their sources...},
       "depth": {
-        "point_source_5sigma": m,          # optimal-photometry 5-sigma depth, median noise
+        "point_source_5sigma": m,          # optimal-photometry 5-sigma depth (injection PSF), median noise
+        "point_source_5sigma_gaussian": m, # the same for a Gaussian PSF of the FWHM
+        "psf_nea_pix": a,                  # noise-equivalent area of the injection PSF, pixels
         "aperture_5sigma": m,              # 5-sigma in a circular aperture of 2 FWHM diameter
         "aperture_diameter_pix": d,
         "histogram": {...} | null          # completeness from the detected number counts
       },
       "kinds": {
         "<kind>": {
-          "counts": {"realizations", "injected", "usable", "detected", "false", "preexisting"},
+          "counts": {"realizations", "injected", "usable", "detected", "false", "preexisting",
+                     "near_unusable"},
           "mag_range": [bright, faint],
           "binned": {
             "mag_edges": [...], "mag_centers": [...],
@@ -62,6 +65,14 @@ def _none_if_nan(v):
     return None if v is None or not np.isfinite(v) else float(v)
 
 
+def _uncounted(det) -> np.ndarray:
+    """Detections left out of purity: pre-existing sources and light of unusable injections."""
+    out = np.asarray(det["preexisting"], bool).copy()
+    if "near_unusable" in det.colnames:
+        out |= np.asarray(det["near_unusable"], bool)
+    return out
+
+
 def kind_binned(merged: dict, edges: np.ndarray, config: RunConfig) -> dict:
     """Completeness, purity and detection rate of one kind (``BinnedRatio`` objects)."""
     truth, det = merged["injected"], merged["detections"]
@@ -73,7 +84,7 @@ def kind_binned(merged: dict, edges: np.ndarray, config: RunConfig) -> dict:
     det_mag = np.asarray(det[config.matching.mag_column], float)
     if det_mag.ndim == 2:
         det_mag = det_mag[:, 0]
-    pre = np.asarray(det["preexisting"], bool)
+    pre = _uncounted(det)
     matched = np.asarray(det["matched"], bool)
     pur = R.purity(det_mag, matched, edges, excluded=pre, confidence=conf, interval=interval)
     rate = R.detection_rate(det_mag, np.asarray(truth["mag"], float), edges, det_excluded=pre,
@@ -99,6 +110,7 @@ def kind_summary(merged: dict, edges: np.ndarray, config: RunConfig, *, nreal: i
         "detected": int((np.asarray(truth["detected"], bool) & usable).sum()),
         "false": int(np.asarray(det["false"], bool).sum()),
         "preexisting": int(np.asarray(det["preexisting"], bool).sum()),
+        "near_unusable": int(np.asarray(det["near_unusable"], bool).sum()) if "near_unusable" in det.colnames else 0,
     }
     out = {"counts": counts, "mag_range": [float(edges[0]), float(edges[-1])], "binned": binned,
            "m50_binned": _none_if_nan(R.magnitude_at(b["completeness"], 0.5))}
@@ -130,7 +142,7 @@ def maps_hdulist(merged: dict, *, image_shape, pixel_scale: float, wcs, config: 
         det_mag = det_mag[:, 0]
     pur = R.purity_map(np.asarray(det["xwin"], float), np.asarray(det["ywin"], float), det_mag,
                        np.asarray(det["matched"], bool), image_shape=image_shape, bin_pix=bin_pix,
-                       mag_edges=mag_edges, excluded=np.asarray(det["preexisting"], bool), confidence=conf,
+                       mag_edges=mag_edges, excluded=_uncounted(det), confidence=conf,
                        interval=interval)
     header = fits.Header()
     if wcs is not None:
@@ -147,15 +159,34 @@ def maps_hdulist(merged: dict, *, image_shape, pixel_scale: float, wcs, config: 
     return fits.HDUList(hdus)
 
 
-def depth_summary(noise: np.ndarray, mask: np.ndarray, *, zeropoint: float, fwhm: float, det_mags) -> dict:
-    """Depth references: N-sigma limiting magnitudes and the histogram-count completeness."""
-    from .depth import histogram_completeness, limiting_magnitude, point_source_depth
+def _faint_crossing(h, level: float) -> float:
+    """Where the histogram completeness first falls below ``level`` faintward of the fitted range.
+
+    Brightward of it the counts are sparse and star-dominated, so the ratio to
+    the galaxy power law means nothing there.
+    """
+    sel = h.centers > h.fit_range[1]
+    return R.first_crossing(h.centers[sel], h.completeness[sel], level)
+
+
+def depth_summary(noise: np.ndarray, mask: np.ndarray, *, zeropoint: float, fwhm: float, det_mags,
+                  psf_nea: float | None = None) -> dict:
+    """Depth references: N-sigma limiting magnitudes and the histogram-count completeness.
+
+    ``point_source_5sigma`` uses the noise-equivalent area of the injection PSF
+    when ``psf_nea`` is given (else a Gaussian of the FWHM);
+    ``point_source_5sigma_gaussian`` is always the Gaussian value.
+    """
+    from .depth import histogram_completeness, limiting_magnitude, point_source_depth, point_source_depth_nea
 
     sigma = float(np.median(noise[~mask])) if (~mask).any() else float(np.median(noise))
     diam = 2.0 * fwhm
+    gauss = float(point_source_depth(sigma, zeropoint, fwhm, 5.0))
     out = {
         "noise_median": sigma,
-        "point_source_5sigma": float(point_source_depth(sigma, zeropoint, fwhm, 5.0)),
+        "point_source_5sigma": gauss if psf_nea is None else point_source_depth_nea(sigma, zeropoint, psf_nea, 5.0),
+        "point_source_5sigma_gaussian": gauss,
+        "psf_nea_pix": psf_nea,
         "aperture_5sigma": float(limiting_magnitude(sigma, zeropoint, aperture_diameter_pix=diam, nsigma=5.0)),
         "aperture_diameter_pix": diam,
         "histogram": None,
@@ -173,5 +204,5 @@ def depth_summary(noise: np.ndarray, mask: np.ndarray, *, zeropoint: float, fwhm
                                 "fit_range": [float(v) for v in h.fit_range],
                                 "mag_centers": [float(v) for v in h.centers],
                                 "completeness": [_none_if_nan(v) for v in h.completeness],
-                                "m50": _none_if_nan(h.magnitude_at(0.5))}
+                                "m50": _none_if_nan(_faint_crossing(h, 0.5))}
     return out

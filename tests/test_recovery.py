@@ -189,14 +189,17 @@ def test_summary_json_has_the_documented_keys_and_consistent_counts(clean_run):
     # the documented 5-sigma depth: SNR 5 of optimal photometry of a *Gaussian* PSF of the image FWHM
     # on the white noise; 0.03 mag allows the few per cent error of the measured noise median
     unit_snr = float(matched_snr(1.0, FWHM, SIGMA, psf="gaussian"))
-    assert s["depth"]["point_source_5sigma"] == pytest.approx(ZP - 2.5 * np.log10(5.0 / unit_snr), abs=0.03)
+    assert s["depth"]["point_source_5sigma_gaussian"] == pytest.approx(ZP - 2.5 * np.log10(5.0 / unit_snr), abs=0.03)
+    # with the injection PSF (Moffat beta=3), the optimal-photometry depth from its noise-equivalent area
+    unit_snr_moffat = float(matched_snr(1.0, FWHM, SIGMA, psf="moffat", beta=3.0))
+    assert s["depth"]["point_source_5sigma"] == pytest.approx(ZP - 2.5 * np.log10(5.0 / unit_snr_moffat), abs=0.03)
     assert s["depth"]["noise_median"] == pytest.approx(SIGMA, rel=0.03)
     assert set(s["kinds"]) == {"point", "buldisk"}
     edges = magnitude_edges(MAG_RANGE[0], MAG_RANGE[1], MAG_BIN)
     for kind, entry in s["kinds"].items():
         assert set(entry) >= {"counts", "mag_range", "binned", "m50_binned", "maps"}
         c = entry["counts"]
-        assert set(c) == {"realizations", "injected", "usable", "detected", "false", "preexisting"}
+        assert set(c) == {"realizations", "injected", "usable", "detected", "false", "preexisting", "near_unusable"}
         b = entry["binned"]
         assert set(b) >= {"mag_edges", "mag_centers", "completeness", "completeness_lower", "completeness_upper",
                           "completeness_n", "completeness_k", "purity", "purity_lower", "purity_upper", "purity_n",
