@@ -50,6 +50,7 @@ __all__ = [
     "InjectionConfig",
     "MatchingConfig",
     "RatiosConfig",
+    "FitConfig",
     "RunConfig",
     "load_config",
     "parse_override",
@@ -372,6 +373,42 @@ class RatiosConfig:
 
 
 @dataclass(frozen=True)
+class FitConfig:
+    """The Bayesian completeness model fitted to the per-injection outcomes.
+
+    Parameters
+    ----------
+    model : str
+        A specification in ``models/`` by name (``logistic``,
+        ``logistic_depth``, ...) or a path to a TOML file; ``auto`` (default)
+        fits the candidates of ``models/auto.toml`` from the simplest upward
+        and keeps the simplest whose PSIS-LOO score is within the margin of the
+        best; ``none`` skips the fit (binned ratios only).
+    purity_model : str
+        Specification of the purity model fitted to the counted detections
+        (matched vs false) in measured magnitude; ``none`` to skip.
+    min_ess : float
+        Effective sample size per parameter the emcee run continues to.
+    max_steps : int
+        Longest emcee run (steps per walker); a shorter convergence warns.
+    map_step_arcmin : float
+        Bin of the posterior m50(x, y) map, arcmin.
+    """
+
+    model: str = "auto"
+    purity_model: str = "purity"
+    min_ess: float = 1000.0
+    max_steps: int = 20000
+    map_step_arcmin: float = 0.5
+
+    def __post_init__(self):
+        _check(bool(self.model), "fit.model", self.model, "a model name, a TOML path, 'auto' or 'none'")
+        _check(self.min_ess >= 10, "fit.min_ess", self.min_ess, "an effective sample size >= 10, e.g. 1000")
+        _check(self.max_steps >= 100, "fit.max_steps", self.max_steps, "an integer >= 100")
+        _check(self.map_step_arcmin > 0, "fit.map_step_arcmin", self.map_step_arcmin, "a positive size in arcmin")
+
+
+@dataclass(frozen=True)
 class RunConfig:
     """All settings of one run; one attribute per stage section."""
 
@@ -380,6 +417,7 @@ class RunConfig:
     injection: InjectionConfig = field(default_factory=InjectionConfig)
     matching: MatchingConfig = field(default_factory=MatchingConfig)
     ratios: RatiosConfig = field(default_factory=RatiosConfig)
+    fit: FitConfig = field(default_factory=FitConfig)
     seed: int = 0
 
     def __post_init__(self):
@@ -395,7 +433,7 @@ class RunConfig:
 
 
 _SECTIONS = {"detection": DetectionConfig, "sourcefree": SourceFreeConfig, "injection": InjectionConfig,
-             "matching": MatchingConfig, "ratios": RatiosConfig}
+             "matching": MatchingConfig, "ratios": RatiosConfig, "fit": FitConfig}
 
 
 def _check(ok: bool, key: str, value: Any, expected: str) -> None:
