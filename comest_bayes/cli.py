@@ -15,6 +15,7 @@ from __future__ import annotations
 import argparse
 import sys
 import time
+import warnings
 from pathlib import Path
 
 from . import __version__
@@ -39,6 +40,9 @@ def _add_config_options(p: argparse.ArgumentParser) -> None:
                         "(default point,buldisk)")
     g.add_argument("--nsims", type=int, default=None, help="realizations per kind (default 10)")
     g.add_argument("--density", type=float, default=None, help="injections per arcmin^2 (default 15)")
+    g.add_argument("--model", default=None,
+                   help="completeness model: a name from models/ (logistic, logistic_depth, ...), a TOML path, "
+                        "'auto' (default: select the simplest the scene supports) or 'none'")
     c = p.add_argument_group("compute (results do not depend on these)")
     c.add_argument("--ncpu", type=int, default=None, help="worker processes (default: all cores)")
     c.add_argument("--executor", choices=("processes", "serial", "dask"), default="processes",
@@ -112,6 +116,8 @@ def _config_from_args(args):
         overrides.append(f"injection.nsims={args.nsims}")
     if args.density is not None:
         overrides.append(f"injection.density={args.density}")
+    if args.model is not None:
+        overrides.append(f"fit.model={args.model}")
     return load_config(args.config, overrides, seed=args.seed)
 
 
@@ -145,8 +151,13 @@ def _final_summary(result, log) -> None:
     kinds = (result.summary or {}).get("kinds", {})
     for kind, info in kinds.items():
         m50 = info.get("m50_binned")
-        log(f"  {kind:<9} binned 50% completeness at {'n/a' if m50 is None else f'{m50:.2f}'} mag "
-            f"({info['counts']['usable']} injections, {info['counts']['realizations']} realizations)")
+        model = info.get("model") or {}
+        fitted = (model.get("m50") or {}).get("median")
+        text = (f"  {kind:<9} 50% completeness: binned {'n/a' if m50 is None else f'{m50:.2f}'} mag")
+        if fitted is not None:
+            text += (f"; {model['name']} posterior {fitted:.2f} "
+                     f"[{model['m50']['lo68']:.2f}, {model['m50']['hi68']:.2f}] (68%)")
+        log(text + f"  ({info['counts']['usable']} injections, {info['counts']['realizations']} realizations)")
     log(f"done: outputs in {result.out_dir} (summary.json, catalogs/, maps/)")
 
 
@@ -194,6 +205,8 @@ def main(argv=None) -> int:
         if not quiet:
             print(line, flush=True)
 
+    # Warnings (unconverged samplers, prior-dominated fits) as one readable line each.
+    warnings.formatwarning = lambda message, category, *rest, **kw: f"warning: {message}\n"
     handler = {"run": _cmd_run, "demo": _cmd_demo}[args.command]
     try:
         return handler(args, log)

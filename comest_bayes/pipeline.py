@@ -160,6 +160,12 @@ def run_pipeline(options: ImageOptions, config: RunConfig, out_dir, *,
     if config.injection.psf not in ("moffat", "gaussian", "kolmogorov") and not Path(config.injection.psf).is_file():
         raise ConfigError(f"injection.psf={config.injection.psf!r} is neither moffat, gaussian, kolmogorov nor an "
                           f"existing FITS PSF image.")
+    if config.fit.model != "none":
+        from .modelspec import load_spec
+
+        load_spec(config.fit.model)  # an unknown model name is an error now, not after the injections
+        if config.fit.purity_model != "none":
+            load_spec(config.fit.purity_model)
     fingerprint = {"input": options.fingerprint(), "config": config.to_dict()}
     run = RunDirectory(out_dir, fingerprint)
     run.check()  # read-only: new run, resume, or refusal
@@ -367,6 +373,13 @@ def _injection_stages(run: RunDirectory, image: ImageData, det: DetectionResult,
         c = kinds[kind]["counts"]
         log(f"ratios: {kind}: {c['detected']}/{c['usable']} usable injections detected, {c['false']} false "
             f"detections; binned m50 = {kinds[kind]['m50_binned'] if kinds[kind]['m50_binned'] is None else round(kinds[kind]['m50_binned'], 2)}")
+    timings["ratios"] = round(time.perf_counter() - t0, 3)
+
+    # ---- the Bayesian completeness and purity models ---------------------------------
+    t0 = time.perf_counter()
+    _fit_stages(run, image, det, config, kinds, edges, mag_range, log)
+    timings["fit"] = round(time.perf_counter() - t0, 3)
+
     summary = {
         "format": SUMMARY_FORMAT,
         "image": image.facts(),
@@ -376,5 +389,61 @@ def _injection_stages(run: RunDirectory, image: ImageData, det: DetectionResult,
         "failed_realizations": failures,
     }
     run.write_json("summary.json", summary)
-    timings["ratios"] = round(time.perf_counter() - t0, 3)
     return summary
+
+
+def _fit_stages(run: RunDirectory, image: ImageData, det: DetectionResult, config: RunConfig, kinds: dict,
+                edges, mag_range, log) -> None:
+    """Fit completeness (and purity) per kind; add their entries to ``kinds`` (resumable per kind)."""
+    from astropy.table import Table
+
+    from .fitting import fit_kind, purity_outcomes
+
+    if config.fit.model == "none":
+        return
+    run.file("posterior").mkdir(exist_ok=True)
+    centers = 0.5 * (edges[:-1] + edges[1:])
+    wcs_header = None if image.wcs is None else image.wcs.to_header(relax=True).tostring()
+    jobs = [("completeness", config.fit.model)]
+    if config.fit.purity_model != "none":
+        jobs.append(("purity", config.fit.purity_model))
+    for kind in kinds:
+        for quantity, requested in jobs:
+            stage = f"fit_{quantity}_{kind}"
+            key = "model" if quantity == "completeness" else "purity_model"
+            if run.stage_done(stage):
+                kinds[kind][key] = run.stage_info(stage)["entry"]
+                continue
+            if quantity == "completeness":
+                table = Table.read(run.file(f"catalogs/{kind}_outcomes.fits"), mask_invalid=False)
+                outcome_column = "detected"
+            else:
+                table = purity_outcomes(Table.read(run.file(f"catalogs/{kind}_matched.fits"), mask_invalid=False),
+                                        Table.read(run.file(f"catalogs/{kind}_false.fits"), mask_invalid=False),
+                                        config.matching.mag_column)
+                outcome_column = "real"
+            post, entry = fit_kind(table, kind=kind, quantity=quantity, requested=requested, config=config,
+                                   image_shape=image.shape, noise=det.noise, mask=image.mask, wcs_header=wcs_header,
+                                   mag_range=mag_range, mag_centers=centers, outcome_column=outcome_column, log=log)
+            files = [str(post.save(run.file(f"posterior/{kind}_{quantity}.npz")).relative_to(run.path))]
+            entry["posterior_file"] = files[0]
+            entry["m50_map_file"] = None
+            if quantity == "completeness" and post.spec.spatial != "none":
+                step = max(1, int(round(config.fit.map_step_arcmin * 60.0 / image.pixel_scale)))
+                med, sd, header = post.m50_map(step)
+                hdul = fits.HDUList([fits.PrimaryHDU(), fits.ImageHDU(med.astype(np.float32), header, name="M50"),
+                                     fits.ImageHDU(sd.astype(np.float32), header, name="M50_SD")])
+                name = f"maps/{kind}_m50.fits"
+                from .rundir import atomic_path
+
+                with atomic_path(run.file(name)) as tmp:
+                    hdul.writeto(tmp)
+                entry["m50_map_file"] = name
+                files.append(name)
+            run.record_stage(stage, files=files, seconds=entry["seconds"], entry=entry)
+            m50 = entry.get("m50", {})
+            med = m50.get("median")
+            log(f"fit: {kind} {quantity}: {entry['name']}, m50 = "
+                + ("n/a" if med is None else f"{med:.2f} (+{m50['hi68'] - med:.2f}/-{med - m50['lo68']:.2f})")
+                + f", ESS >= {min(entry['diagnostics'].get('ess', [0]) or [0]):.0f} in {entry['seconds']:.1f} s")
+            kinds[kind][key] = entry

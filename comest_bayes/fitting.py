@@ -1,0 +1,159 @@
+"""Fit the completeness and purity models of one source kind (orchestration of the numerics).
+
+From the per-injection outcome table (and the matched and false detections
+for purity) to a saved :class:`~comest_bayes.posterior.CompletenessPosterior`
+and the JSON-ready entry that ``summary.json`` gains under
+``kinds.<kind>.model`` and ``kinds.<kind>.purity_model``::
+
+    {
+      "name": "logistic_depth",                   # the fitted (or selected) specification
+      "requested": "auto",
+      "selection": {"table": [...], "chosen", "best", "rule"} | null,
+      "m50": {"median", "lo68", "hi68", "defined_fraction"}, "m80": {...}, "m90": {...},
+      "parameters": {"m50_0": {"median", "lo68", "hi68"}, "w": ..., "A": ..., ...},
+      "curve": {"mag": [...], "median": [...], "lo68", "hi68", "lo95", "hi95"},   # image average
+      "diagnostics": {tau, ess, acceptance, nsteps, converged, warnings, ...},
+      "posterior_file": "posterior/<kind>.npz",
+      "m50_map_file": "maps/<kind>_m50.fits" | null,
+      "n_outcomes": N, "n_cells": G, "seconds": t
+    }
+
+For purity the magnitudes are the measured ones and the "characteristic
+magnitudes" are where purity falls to 50/80/90%.
+"""
+
+from __future__ import annotations
+
+import time
+import warnings
+
+import numpy as np
+from astropy.table import Table
+
+from .config import RunConfig
+from .errors import InputError
+from .inference import fit
+from .likelihood import CompletenessModel, compress_for, covariates_from_outcomes
+from .modelspec import load_spec, resolve_candidates
+from .posterior import CompletenessPosterior, coarse_noise_map, footprint_sample
+from .seeding import int_seed_for, rng_for
+from .selection import select_model
+
+__all__ = ["fit_kind", "purity_outcomes", "MIN_OUTCOMES"]
+
+#: Fewer usable outcomes than this: the fit still runs but warns that the prior dominates.
+MIN_OUTCOMES = 20
+#: Effective sample size of the candidate fits during model selection (PSIS-LOO needs a few hundred draws).
+SELECTION_ESS = 400
+
+
+def purity_outcomes(matched: Table, false: Table, mag_column: str = "mag_auto") -> Table:
+    """One row per counted detection: measured position and magnitude, ``real`` (matched) or not."""
+    mm = np.asarray(matched[f"det_{mag_column}"], float)
+    fm = np.asarray(false[mag_column], float)
+    if mm.ndim == 2:
+        mm = mm[:, 0]
+    if fm.ndim == 2:
+        fm = fm[:, 0]
+    return Table({
+        "x": np.concatenate([np.asarray(matched["det_xwin"], float), np.asarray(false["xwin"], float)]),
+        "y": np.concatenate([np.asarray(matched["det_ywin"], float), np.asarray(false["ywin"], float)]),
+        "mag": np.concatenate([mm, fm]),
+        "real": np.concatenate([np.ones(len(mm), bool), np.zeros(len(fm), bool)]),
+    })
+
+
+def _param_summary(model: CompletenessModel, draws: np.ndarray) -> dict:
+    phys = model.transform(draws)
+    out = {}
+    for name, values in phys.items():
+        values = np.atleast_1d(np.asarray(values, float))
+        q = np.percentile(values, [16, 50, 84])
+        out[name] = {"median": float(q[1]), "lo68": float(q[0]), "hi68": float(q[2])}
+    return out
+
+
+def _json_curve(curve: dict) -> dict:
+    return {k: [float(v) for v in np.asarray(arr)] for k, arr in curve.items()}
+
+
+def fit_kind(outcomes: Table, *, kind: str, quantity: str, requested: str, config: RunConfig, image_shape,
+             noise: np.ndarray, mask: np.ndarray, wcs_header: str | None, mag_range, mag_centers,
+             outcome_column: str = "detected", log=lambda s: None) -> tuple[CompletenessPosterior, dict]:
+    """Fit (or select and fit) the model of one kind and quantity.
+
+    Parameters
+    ----------
+    outcomes : Table
+        Rows with ``mag``, ``outcome_column`` and optionally ``x``, ``y``,
+        ``noise``, ``hlr_arcsec``.
+    kind, quantity : str
+        Source kind and ``"completeness"`` or ``"purity"`` (names the seed stream).
+    requested : str
+        Spec name or path, or a selection spec such as ``auto``.
+    noise, mask : ndarray
+        Detection noise map and mask of the image (depth covariate, footprint).
+
+    Returns
+    -------
+    (CompletenessPosterior, dict)
+        The posterior (not yet saved) and its ``summary.json`` entry.
+    """
+    t0 = time.perf_counter()
+    spec = load_spec(requested)
+    n_rows = len(outcomes)
+    if n_rows == 0:
+        raise InputError(f"no {quantity} outcomes for kind {kind!r}: nothing to fit.")
+    cov, outcome, meta = covariates_from_outcomes(outcomes, image_shape=image_shape, outcome_column=outcome_column)
+    warn = []
+    if n_rows < MIN_OUTCOMES:
+        warn.append(f"only {n_rows} outcomes: the posterior of the {kind} {quantity} is dominated by the priors")
+    if outcome.all() or not outcome.any():
+        warn.append(f"every {kind} outcome is {'positive' if outcome.all() else 'negative'}: the "
+                    f"{quantity} curve is not constrained on one side (its posterior there is the prior)")
+    for w in warn:
+        warnings.warn(w, UserWarning, stacklevel=2)
+    data = compress_for(spec, cov, outcome, meta=meta)
+    seed = int_seed_for(config.seed, "fit", quantity, kind)
+    selection = None
+    if spec.is_selection:
+        candidates = resolve_candidates(spec)
+        # LOO needs far fewer draws than the final posterior: select on short runs, then run
+        # the chosen model to the full effective sample size.
+        sel = select_model(data, candidates, seed=seed, min_ess=min(SELECTION_ESS, config.fit.min_ess),
+                           max_steps=config.fit.max_steps)
+        chosen_spec = next(c for c in candidates if c.name == sel.chosen)
+        model = sel.models.get(sel.chosen) or CompletenessModel(chosen_spec, data)
+        result = sel.fits[sel.chosen]
+        if config.fit.min_ess > SELECTION_ESS:
+            result = fit(model, seed=seed, min_ess=config.fit.min_ess, max_steps=config.fit.max_steps)
+        selection = {k: v for k, v in sel.to_dict().items() if k != "diagnostics"}
+        log(f"fit: {kind} {quantity}: selected {sel.chosen} among {[c.name for c in candidates]} ({sel.rule})")
+    else:
+        chosen_spec = spec
+        model = CompletenessModel(spec, data)
+        result = fit(model, seed=seed, min_ess=config.fit.min_ess, max_steps=config.fit.max_steps)
+    draws = result.draws()
+    diagnostics = result.posterior.diagnostics.to_dict() if result.posterior is not None else {}
+    post = CompletenessPosterior(
+        spec=chosen_spec, samples=draws, names=list(model.names),
+        meta={"sigma_ref": data.meta.get("sigma_ref"), "hlr_ref": data.meta.get("hlr_ref"),
+              "image_shape": tuple(int(v) for v in image_shape), "mag_range": [float(v) for v in mag_range],
+              "kind": kind, "quantity": quantity},
+        noise_grid=coarse_noise_map(noise, mask), footprint=footprint_sample(mask, 2000, rng_for(seed, "footprint")),
+        wcs_header=wcs_header, diagnostics={"sampler": diagnostics, "selection": selection, "warnings": warn},
+    )
+    entry = {
+        "name": chosen_spec.name,
+        "requested": requested,
+        "selection": selection,
+        **post.summary_magnitudes(),
+        "parameters": _param_summary(model, draws),
+        "curve": _json_curve(post.curve(np.asarray(mag_centers, float))),
+        "diagnostics": diagnostics,
+        "warnings": warn + list(diagnostics.get("warnings", [])),
+        "n_outcomes": int(data.ntotal),
+        "n_cells": int(data.ncells),
+        "seconds": round(time.perf_counter() - t0, 2),
+    }
+    return post, entry
