@@ -23,7 +23,7 @@ def small_tile(tmp_path_factory):
 
 def load_config(**kw):
     """Two realizations per kind keep these end-to-end tests fast."""
-    return _load_config(overrides=["injection.nsims=2"], **kw)
+    return _load_config(overrides=["injection.nsims=2", "fit.model=none", "fit.purity_model=none"], **kw)
 
 
 def _options(paths, **kw):
@@ -152,7 +152,7 @@ def test_cli_run_refuses_a_directory_with_another_run(small_tile, tmp_path, caps
     _, paths = small_tile
     out = tmp_path / "run"
     args = ["run", str(paths["image"]), "--weight", str(paths["weight"]), "--out", str(out), "--quiet",
-            "--nsims", "1"]
+            "--nsims", "1", "--model", "none", "--set", "fit.purity_model=none"]
     assert main(args) == 0
     before = (out / "run.json").read_text()
     assert main(args + ["--thresh", "3"]) == 2
@@ -163,11 +163,14 @@ def test_cli_run_refuses_a_directory_with_another_run(small_tile, tmp_path, caps
 @pytest.mark.slow
 def test_cli_demo_small_runs_every_stage_and_resumes(tmp_path, capsys):
     out = tmp_path / "demo"
-    assert main(["demo", "--out", str(out), "--size", "1000", "--seed", "4", "--nsims", "2"]) == 0
+    assert main(["demo", "--out", str(out), "--size", "1000", "--seed", "4", "--nsims", "2",
+                 "--model", "none", "--set", "fit.purity_model=none"]) == 0
     printed = capsys.readouterr().out
     assert "detect:" in printed and "sourcefree:" in printed
     assert (out / "inputs" / "demo_image.fits").exists() and (out / "sfi.fits").exists()
-    assert main(["demo", "--out", str(out), "--size", "1000", "--seed", "4", "--nsims", "2"]) == 0
+    assert main(["demo", "--out", str(out), "--size", "1000", "--seed", "4", "--nsims", "2",
+                 "--model", "none", "--set", "fit.purity_model=none"]) == 0
     assert "resuming" in capsys.readouterr().out
     # another seed in the same directory is refused
-    assert main(["demo", "--out", str(out), "--size", "1000", "--seed", "5", "--nsims", "2"]) == 2
+    assert main(["demo", "--out", str(out), "--size", "1000", "--seed", "5", "--nsims", "2",
+                 "--model", "none", "--set", "fit.purity_model=none"]) == 2

@@ -33,6 +33,9 @@ from astropy.wcs import WCS
 
 from comest_bayes import recovery
 from comest_bayes.config import load_config
+
+# These tests are about injection and recovery; the Bayesian fit has its own tests.
+NOFIT = ["fit.model=none", "fit.purity_model=none"]
 from comest_bayes.demo import MASK_GAP, make_demo_tile, write_demo_tile
 from comest_bayes.pipeline import ComputeOptions, ImageOptions, run_pipeline
 from comest_bayes.ratios import magnitude_edges
@@ -87,7 +90,7 @@ def clean_run(tmp_path_factory):
     header["MAGZERO"] = ZP
     path = write_fits_file(d / "clean.fits", data, header)
     # density 40 / arcmin^2 on 7.1 arcmin^2: ~285 injections per realization, ~50 per 0.5-mag bin
-    config = load_config(overrides=["injection.kinds=point,buldisk", "injection.nsims=3", "injection.density=40",
+    config = load_config(overrides=NOFIT + ["injection.kinds=point,buldisk", "injection.nsims=3", "injection.density=40",
                                     f"injection.mag_range=[{MAG_RANGE[0]},{MAG_RANGE[1]}]",
                                     f"ratios.mag_bin={MAG_BIN}"], seed=8)
     out = d / "run"
@@ -284,7 +287,7 @@ def masked_run(tmp_path_factory):
     image = write_fits_file(d / "image.fits", data, header)
     mask_path = write_fits_file(d / "mask.fits", mask, header)
     # 60 / arcmin^2 on 4 arcmin^2: ~240 injections, a quarter of them masked; maps of 0.5' = 150 px
-    config = load_config(overrides=["injection.kinds=point", "injection.nsims=1", "injection.density=60",
+    config = load_config(overrides=NOFIT + ["injection.kinds=point", "injection.nsims=1", "injection.density=60",
                                     "injection.min_sep=2.4", "injection.mag_range=[17,25]",
                                     "ratios.map_bin_arcmin=0.5", "ratios.map_mag_edges=[17,21,25]"], seed=21)
     out = d / "run"
@@ -352,7 +355,7 @@ def test_maps_carry_a_wcs_matching_the_image_and_the_mask(masked_run):
 
 # ---------------------------------------------------------------- executors and resumption
 
-DEMO_OVERRIDES = ["injection.nsims=3", "injection.density=40"]
+DEMO_OVERRIDES = NOFIT + ["injection.nsims=3", "injection.density=40"]
 DEMO_SEED = 11
 KINDS = ("point", "buldisk")
 
@@ -514,7 +517,7 @@ def test_killed_run_resumes_to_identical_results(reference, demo_paths, tmp_path
 
 def test_a_new_run_in_a_recreated_directory_reads_its_own_images(tmp_path):
     """Realization inputs are cached per process; a rewritten file under the same path is read again."""
-    config = load_config(overrides=["injection.kinds=point", "injection.nsims=1", "injection.density=60",
+    config = load_config(overrides=NOFIT + ["injection.kinds=point", "injection.nsims=1", "injection.density=60",
                                     "injection.min_sep=2.4", "injection.mag_range=[17,25]"], seed=4)
     shape = (300, 300)
     header = tan_header(shape, PIXEL_SCALE)
