@@ -39,12 +39,14 @@ from .posterior import CompletenessPosterior, coarse_noise_map, footprint_sample
 from .seeding import int_seed_for, rng_for
 from .selection import select_model
 
-__all__ = ["fit_kind", "purity_outcomes", "MIN_OUTCOMES"]
+__all__ = ["fit_kind", "fit_task", "purity_outcomes", "MIN_OUTCOMES"]
 
 #: Fewer usable outcomes than this: the fit still runs but warns that the prior dominates.
 MIN_OUTCOMES = 20
 #: Effective sample size of the candidate fits during model selection (PSIS-LOO needs a few hundred draws).
 SELECTION_ESS = 400
+#: Posterior draws used by PSIS-LOO (its cost is draws x cells; a thousand is the usual working number).
+LOO_DRAWS = 1000
 
 
 def purity_outcomes(matched: Table, false: Table, mag_column: str = "mag_auto") -> Table:
@@ -75,6 +77,51 @@ def _param_summary(model: CompletenessModel, draws: np.ndarray) -> dict:
 
 def _json_curve(curve: dict) -> dict:
     return {k: [float(v) for v in np.asarray(arr)] for k, arr in curve.items()}
+
+
+#: A purity model needs at least this many detections of each class (real and false); with fewer,
+#: the binned purity and its binomial interval say all there is to say.
+MIN_CLASS = 25
+
+
+def fit_task(task: dict) -> tuple:
+    """Run :func:`fit_kind` from file paths (a picklable task for the executors).
+
+    ``task`` holds ``run_dir``, ``kind``, ``quantity``, ``requested``, ``config``, ``image_shape``,
+    ``wcs_header``, ``mag_range``, ``mag_centers``.  Returns ``(posterior or None, entry)``; the
+    posterior is returned without its compiled model.
+    """
+    from pathlib import Path
+
+    from astropy.io import fits
+
+    run = Path(task["run_dir"])
+    kind, quantity, config = task["kind"], task["quantity"], task["config"]
+    if quantity == "completeness":
+        table = Table.read(run / "catalogs" / f"{kind}_outcomes.fits", mask_invalid=False)
+        outcome_column = "detected"
+    else:
+        table = purity_outcomes(Table.read(run / "catalogs" / f"{kind}_matched.fits", mask_invalid=False),
+                                Table.read(run / "catalogs" / f"{kind}_false.fits", mask_invalid=False),
+                                config.matching.mag_column)
+        outcome_column = "real"
+        nreal = int(np.sum(table["real"]))
+        nfalse = len(table) - nreal
+        if min(nreal, nfalse) < MIN_CLASS:
+            return None, {"name": None, "requested": task["requested"],
+                          "skipped": f"{nreal} real and {nfalse} false detections: a purity model needs at least "
+                                     f"{MIN_CLASS} of each; see the binned purity"}
+    noise = fits.getdata(run / "noise.fits").astype(np.float32)
+    mask = fits.getdata(run / "mask.fits").astype(bool)
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        post, entry = fit_kind(table, kind=kind, quantity=quantity, requested=task["requested"], config=config,
+                               image_shape=task["image_shape"], noise=noise, mask=mask,
+                               wcs_header=task["wcs_header"], mag_range=task["mag_range"],
+                               mag_centers=task["mag_centers"], outcome_column=outcome_column)
+    entry["warnings"] = sorted(set(entry.get("warnings", [])) | {str(w.message) for w in caught})
+    post._model = None
+    return post, entry
 
 
 def fit_kind(outcomes: Table, *, kind: str, quantity: str, requested: str, config: RunConfig, image_shape,
@@ -121,7 +168,7 @@ def fit_kind(outcomes: Table, *, kind: str, quantity: str, requested: str, confi
         # LOO needs far fewer draws than the final posterior: select on short runs, then run
         # the chosen model to the full effective sample size.
         sel = select_model(data, candidates, seed=seed, min_ess=min(SELECTION_ESS, config.fit.min_ess),
-                           max_steps=config.fit.max_steps)
+                           max_steps=config.fit.max_steps, loo_draws=LOO_DRAWS)
         chosen_spec = next(c for c in candidates if c.name == sel.chosen)
         model = sel.models.get(sel.chosen) or CompletenessModel(chosen_spec, data)
         result = sel.fits[sel.chosen]

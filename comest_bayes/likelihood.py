@@ -602,7 +602,7 @@ def compress_for(specs, cov: Covariates, detected, **kwargs) -> BinomialData:
             need.update(covariates_needed(child))
     # depth step 0.02 mag: the binning error ~ ddepth^2 beta^2 / (12 w^2) is about 1e-3 nat per cell
     # for w >= 0.15, while the cell count (and the emcee cost) drops 3x against 0.005
-    steps = {"ddepth": ("depth", 0.02), "nuv": ("uv", 64), "dsize": ("size", 0.01)}
+    steps = {"ddepth": ("depth", 0.02), "nuv": ("uv", 16), "dsize": ("size", 0.01)}
     for key, (group, default) in steps.items():
         if group not in need:
             kwargs[key] = None

@@ -377,7 +377,7 @@ def _injection_stages(run: RunDirectory, image: ImageData, det: DetectionResult,
 
     # ---- the Bayesian completeness and purity models ---------------------------------
     t0 = time.perf_counter()
-    _fit_stages(run, image, det, config, kinds, edges, mag_range, log)
+    _fit_stages(run, image, det, config, kinds, edges, mag_range, log, compute)
     timings["fit"] = round(time.perf_counter() - t0, 3)
 
     summary = {
@@ -393,11 +393,11 @@ def _injection_stages(run: RunDirectory, image: ImageData, det: DetectionResult,
 
 
 def _fit_stages(run: RunDirectory, image: ImageData, det: DetectionResult, config: RunConfig, kinds: dict,
-                edges, mag_range, log) -> None:
-    """Fit completeness (and purity) per kind; add their entries to ``kinds`` (resumable per kind)."""
-    from astropy.table import Table
-
-    from .fitting import fit_kind, purity_outcomes
+                edges, mag_range, log, compute: "ComputeOptions") -> None:
+    """Fit completeness (and purity) per kind, in parallel; add their entries to ``kinds`` (resumable)."""
+    from .executors import run_tasks
+    from .fitting import fit_task
+    from .rundir import atomic_path
 
     if config.fit.model == "none":
         return
@@ -407,6 +407,7 @@ def _fit_stages(run: RunDirectory, image: ImageData, det: DetectionResult, confi
     jobs = [("completeness", config.fit.model)]
     if config.fit.purity_model != "none":
         jobs.append(("purity", config.fit.purity_model))
+    tasks = []
     for kind in kinds:
         for quantity, requested in jobs:
             stage = f"fit_{quantity}_{kind}"
@@ -414,18 +415,20 @@ def _fit_stages(run: RunDirectory, image: ImageData, det: DetectionResult, confi
             if run.stage_done(stage):
                 kinds[kind][key] = run.stage_info(stage)["entry"]
                 continue
-            if quantity == "completeness":
-                table = Table.read(run.file(f"catalogs/{kind}_outcomes.fits"), mask_invalid=False)
-                outcome_column = "detected"
-            else:
-                table = purity_outcomes(Table.read(run.file(f"catalogs/{kind}_matched.fits"), mask_invalid=False),
-                                        Table.read(run.file(f"catalogs/{kind}_false.fits"), mask_invalid=False),
-                                        config.matching.mag_column)
-                outcome_column = "real"
-            post, entry = fit_kind(table, kind=kind, quantity=quantity, requested=requested, config=config,
-                                   image_shape=image.shape, noise=det.noise, mask=image.mask, wcs_header=wcs_header,
-                                   mag_range=mag_range, mag_centers=centers, outcome_column=outcome_column, log=log)
-            files = [str(post.save(run.file(f"posterior/{kind}_{quantity}.npz")).relative_to(run.path))]
+            tasks.append({"run_dir": str(run.path), "kind": kind, "quantity": quantity, "requested": requested,
+                          "config": config, "image_shape": tuple(image.shape), "wcs_header": wcs_header,
+                          "mag_range": tuple(mag_range), "mag_centers": centers})
+    if tasks:
+        log(f"fit: {len(tasks)} model fits ({', '.join(t['kind'] + ' ' + t['quantity'] for t in tasks)}) "
+            f"on {compute.describe()}")
+
+    def on_result(task, result):
+        post, entry = result
+        kind, quantity = task["kind"], task["quantity"]
+        key = "model" if quantity == "completeness" else "purity_model"
+        files = []
+        if post is not None:
+            files.append(str(post.save(run.file(f"posterior/{kind}_{quantity}.npz")).relative_to(run.path)))
             entry["posterior_file"] = files[0]
             entry["m50_map_file"] = None
             if quantity == "completeness" and post.spec.spatial != "none":
@@ -434,16 +437,23 @@ def _fit_stages(run: RunDirectory, image: ImageData, det: DetectionResult, confi
                 hdul = fits.HDUList([fits.PrimaryHDU(), fits.ImageHDU(med.astype(np.float32), header, name="M50"),
                                      fits.ImageHDU(sd.astype(np.float32), header, name="M50_SD")])
                 name = f"maps/{kind}_m50.fits"
-                from .rundir import atomic_path
-
                 with atomic_path(run.file(name)) as tmp:
                     hdul.writeto(tmp)
                 entry["m50_map_file"] = name
                 files.append(name)
-            run.record_stage(stage, files=files, seconds=entry["seconds"], entry=entry)
-            m50 = entry.get("m50", {})
-            med = m50.get("median")
-            log(f"fit: {kind} {quantity}: {entry['name']}, m50 = "
-                + ("n/a" if med is None else f"{med:.2f} (+{m50['hi68'] - med:.2f}/-{med - m50['lo68']:.2f})")
-                + f", ESS >= {min(entry['diagnostics'].get('ess', [0]) or [0]):.0f} in {entry['seconds']:.1f} s")
-            kinds[kind][key] = entry
+        run.record_stage(f"fit_{quantity}_{kind}", files=files, seconds=entry.get("seconds", 0.0), entry=entry)
+        kinds[kind][key] = entry
+        if post is None:
+            log(f"fit: {kind} {quantity}: skipped ({entry['skipped']})")
+            return
+        for w in entry.get("warnings", []):
+            log(f"warning: {kind} {quantity}: {w}")
+        m50 = entry.get("m50", {})
+        med = m50.get("median")
+        chosen = entry["name"] + (" (selected by PSIS-LOO)" if entry.get("selection") else "")
+        log(f"fit: {kind} {quantity}: {chosen}, m50 = "
+            + ("n/a" if med is None else f"{med:.2f} (+{m50['hi68'] - med:.2f}/-{med - m50['lo68']:.2f})")
+            + f", min ESS {min(entry['diagnostics'].get('ess', [0]) or [0]):.0f}, {entry['seconds']:.1f} s")
+
+    run_tasks(fit_task, tasks, on_result=on_result, executor=compute.executor, workers=compute.workers,
+              scheduler=compute.scheduler, progress=compute.progress, desc="fits")
