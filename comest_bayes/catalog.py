@@ -25,7 +25,7 @@ import numpy as np
 from astropy.table import Table
 
 __all__ = ["DETECTION_COLUMNS", "FLAG_MASKED", "FLAG_BLENDED", "FLAG_SATURATED", "FLAG_EDGE",
-           "FLAG_APER_TRUNC", "FLAG_DEBLEND_OVERFLOW", "make_catalog", "flux_to_mag"]
+           "FLAG_APER_TRUNC", "FLAG_DEBLEND_OVERFLOW", "make_catalog", "flux_to_mag", "derived_columns"]
 
 FLAG_MASKED = 1
 FLAG_BLENDED = 2
@@ -75,6 +75,23 @@ def flux_to_mag(flux, fluxerr, zeropoint):
         mag = np.where(pos, zeropoint - 2.5 * np.log10(np.where(pos, flux, 1.0)), np.nan)
         magerr = np.where(pos, 2.5 / np.log(10.0) * fluxerr / np.where(pos, flux, 1.0), np.nan)
     return mag, magerr
+
+
+def derived_columns(flux_auto, fluxerr_auto, flux_aper, fluxerr_aper, xwin, ywin, *, zeropoint, wcs=None) -> dict:
+    """The columns every backend derives the same way: magnitudes, AUTO SNR and sky coordinates."""
+    mag_auto, magerr_auto = flux_to_mag(flux_auto, fluxerr_auto, zeropoint)
+    mag_aper, magerr_aper = flux_to_mag(flux_aper, fluxerr_aper, zeropoint)
+    flux_auto = np.asarray(flux_auto, dtype=float)
+    fluxerr_auto = np.asarray(fluxerr_auto, dtype=float)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        snr = np.where(fluxerr_auto > 0, flux_auto / fluxerr_auto, np.nan)
+    n = len(flux_auto)
+    if wcs is not None and n:
+        ra, dec = wcs.all_pix2world(np.asarray(xwin, float), np.asarray(ywin, float), 0)
+    else:
+        ra = dec = np.full(n, np.nan)
+    return {"mag_auto": mag_auto, "magerr_auto": magerr_auto, "mag_aper": mag_aper, "magerr_aper": magerr_aper,
+            "snr_auto": snr, "ra": ra, "dec": dec}
 
 
 def make_catalog(columns: dict, naper: int, meta: dict | None = None) -> Table:

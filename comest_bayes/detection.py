@@ -25,7 +25,7 @@ import numpy as np
 import sep
 
 from .catalog import (FLAG_APER_TRUNC, FLAG_BLENDED, FLAG_DEBLEND_OVERFLOW, FLAG_EDGE, FLAG_MASKED,
-                      FLAG_SATURATED, flux_to_mag, make_catalog)
+                      FLAG_SATURATED, derived_columns, make_catalog)
 from .config import DetectionConfig
 from .errors import ConfigError, DetectionOverflowError, InputError
 
@@ -289,14 +289,10 @@ def measure(data_sub, objs, *, noise, mask, back, config: DetectionConfig, zerop
     else:
         kron = flux_auto = fluxerr_auto = flux_radius = xwin = ywin = np.zeros(0)
         flux_aper = fluxerr_aper = np.zeros((0, naper))
-    mag_auto, magerr_auto = flux_to_mag(flux_auto, fluxerr_auto, zeropoint)
-    mag_aper, magerr_aper = flux_to_mag(flux_aper, fluxerr_aper, zeropoint)
-    with np.errstate(divide="ignore", invalid="ignore"):
-        snr = np.where(fluxerr_auto > 0, flux_auto / fluxerr_auto, np.nan)
-    if wcs is not None and n:
-        ra, dec = wcs.all_pix2world(xwin, ywin, 0)
-    else:
-        ra = dec = np.full(n, np.nan)
+    derived = derived_columns(flux_auto, fluxerr_auto, flux_aper, fluxerr_aper, xwin, ywin, zeropoint=zeropoint,
+                              wcs=wcs)
+    mag_auto, magerr_auto, snr = derived["mag_auto"], derived["magerr_auto"], derived["snr_auto"]
+    mag_aper, magerr_aper, ra, dec = derived["mag_aper"], derived["magerr_aper"], derived["ra"], derived["dec"]
     return {
         "id": np.arange(1, n + 1), "x": x, "y": y, "xwin": xwin, "ywin": ywin, "ra": ra, "dec": dec,
         "a": objs["a"], "b": objs["b"], "theta": theta, "npix": objs["tnpix"], "peak": objs["peak"],

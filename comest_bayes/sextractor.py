@@ -137,7 +137,7 @@ from pathlib import Path
 import numpy as np
 from astropy.io import fits
 
-from .catalog import FLAG_MASKED, flux_to_mag, make_catalog
+from .catalog import FLAG_MASKED, derived_columns, make_catalog
 from .config import DetectionConfig
 from .detection import DetectionResult, filter_kernel, noise_map
 from .errors import BackendUnavailableError, ComestError, ConfigError, DetectionOverflowError, InputError
@@ -604,14 +604,10 @@ def _catalog_columns(cat: dict, n: int, *, naper: int, shape, mask, noise, zerop
     flux_aper, fluxerr_aper = col("FLUX_APER", naper), col("FLUXERR_APER", naper)
     flags = col("FLAGS").astype(np.int64)
     flags[_auto_ellipse_touches_mask(mask, x, y, a, b, theta, kron)] |= FLAG_MASKED
-    mag_auto, magerr_auto = flux_to_mag(flux_auto, fluxerr_auto, zeropoint)
-    mag_aper, magerr_aper = flux_to_mag(flux_aper, fluxerr_aper, zeropoint)
-    with np.errstate(divide="ignore", invalid="ignore"):
-        snr = np.where(fluxerr_auto > 0, flux_auto / fluxerr_auto, np.nan)
-    if wcs is not None and n:
-        ra, dec = wcs.all_pix2world(xwin, ywin, 0)
-    else:
-        ra = dec = np.full(n, np.nan)
+    derived = derived_columns(flux_auto, fluxerr_auto, flux_aper, fluxerr_aper, xwin, ywin, zeropoint=zeropoint,
+                              wcs=wcs)
+    mag_auto, magerr_auto, snr = derived["mag_auto"], derived["magerr_auto"], derived["snr_auto"]
+    mag_aper, magerr_aper, ra, dec = derived["mag_aper"], derived["magerr_aper"], derived["ra"], derived["dec"]
     return {
         "id": col("NUMBER").astype(np.int64), "x": x, "y": y, "xwin": xwin, "ywin": ywin, "ra": ra, "dec": dec,
         "a": a, "b": b, "theta": theta, "npix": col("ISOAREA_IMAGE").astype(np.int64), "peak": col("FLUX_MAX"),
