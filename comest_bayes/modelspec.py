@@ -297,7 +297,20 @@ _SPEC_KEYS = {f.name for f in fields(ModelSpec)} - {"source"}
 
 
 def _models_dir():
-    return resources.files("comest_bayes.models")
+    """The folder of the shipped specifications.
+
+    Installed, it is the package ``comest_bayes.models`` (the repository's top-level ``models/``
+    mapped into the wheel).  When ``comest_bayes`` is imported from a source checkout instead (for
+    example ``python -m pytest`` in the repository after a non-editable install), that subpackage
+    does not exist there and the checkout's ``models/`` folder is used.
+    """
+    try:
+        return resources.files("comest_bayes.models")
+    except ModuleNotFoundError:
+        here = Path(__file__).resolve().parent.parent / "models"
+        if here.is_dir():
+            return here
+        raise
 
 
 def list_specs() -> list[str]:

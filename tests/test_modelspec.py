@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import math
-from importlib import resources
 
 import pytest
 
@@ -16,10 +15,26 @@ SHIPPED = ["auto", "logistic", "logistic_depth", "logistic_depth_size", "logisti
 
 
 def test_list_specs_finds_every_shipped_file():
+    from comest_bayes.modelspec import _models_dir
+
     assert list_specs() == sorted(SHIPPED)
-    files = {p.name for p in resources.files("comest_bayes.models").iterdir()}
+    files = {p.name for p in _models_dir().iterdir()}
     assert {f"{n}.toml" for n in SHIPPED} <= files
     assert "README.md" in files  # the format documentation ships with the package
+
+
+def test_the_wheel_maps_models_into_the_package():
+    """models/ (top level, as the user asked) is installed as comest_bayes.models with its files."""
+    import sys
+    from pathlib import Path
+
+    tomllib = pytest.importorskip("tomllib") if sys.version_info >= (3, 11) else pytest.importorskip("tomli")
+    root = Path(__file__).resolve().parents[1]
+    setup = tomllib.loads((root / "pyproject.toml").read_text())["tool"]["setuptools"]
+    assert "comest_bayes.models" in setup["packages"]
+    assert setup["package-dir"]["comest_bayes.models"] == "models"
+    assert {"*.toml", "*.md"} <= set(setup["package-data"]["comest_bayes.models"])
+    assert (root / "models" / "__init__.py").is_file()
 
 
 @pytest.mark.parametrize("name", SHIPPED)
