@@ -115,3 +115,25 @@ def test_purity_outcomes_stack_matched_and_false_detections():
     t = purity_outcomes(matched, false)
     assert list(t["real"]) == [True, True, False]
     assert list(t["mag"]) == [20.0, 21.0, 25.0] and list(t["x"]) == [1.0, 2.0, 5.0]
+
+
+def test_sky_coordinate_query_equals_the_pixel_query():
+    from astropy.wcs import WCS
+
+    w = WCS(naxis=2)
+    w.wcs.ctype = ["RA---TAN", "DEC--TAN"]
+    w.wcs.crval = [150.0, 2.0]
+    w.wcs.crpix = [300.0, 200.0]
+    w.wcs.cd = np.array([[-0.2, 0.05], [0.05, 0.2]]) / 3600.0
+    table, noise_map = _outcomes(3000, seed=6)
+    config = load_config(overrides=["fit.model=logistic_depth", "fit.min_ess=100"], seed=3)
+    post, _ = fit_kind(table, kind="point", quantity="completeness", requested="logistic_depth", config=config,
+                       image_shape=SHAPE, noise=noise_map, mask=np.zeros(SHAPE, bool),
+                       wcs_header=w.to_header().tostring(), mag_range=(21.0, 26.5),
+                       mag_centers=np.arange(21.1, 26.5, 0.2))
+    (ra, dec), = [w.all_pix2world([[500.0, 100.0]], 0)[0]]
+    np.testing.assert_allclose(post.completeness(24.0, ra=ra, dec=dec), post.completeness(24.0, 500.0, 100.0),
+                               rtol=1e-6)
+    # and a sky position in the deep part differs from one in the shallow part
+    (ra2, dec2), = [w.all_pix2world([[100.0, 100.0]], 0)[0]]
+    assert post.completeness(24.0, ra=ra2, dec=dec2).mean() > post.completeness(24.0, ra=ra, dec=dec).mean() + 0.2
