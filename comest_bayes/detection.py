@@ -134,8 +134,15 @@ def noise_map(mode: str, rms: np.ndarray, global_rms: float, weight_noise: np.nd
     else:  # pragma: no cover - guarded by DetectionConfig
         raise ConfigError(f"unknown detection.noise mode {mode!r}")
     out = np.ascontiguousarray(out, dtype=np.float32)
-    fill = float(np.median(out[~mask])) if (~mask).any() else 1.0
-    out[mask | ~np.isfinite(out)] = fill
+    bad = mask | ~np.isfinite(out)
+    if bad.any():
+        # the fill value only needs to be typical: a median over a regular subsample of the good
+        # pixels costs a fraction of one over all of them on large images
+        step = max(1, out.size // 1_000_000)
+        flat_good = ~bad.ravel()[::step]
+        sample = out.ravel()[::step][flat_good]
+        fill = float(np.median(sample)) if sample.size else (float(np.median(out[~bad])) if (~bad).any() else 1.0)
+        out[bad] = fill
     return out, mode
 
 
@@ -208,10 +215,11 @@ def detect_array(data: np.ndarray, *, mask: np.ndarray | None = None, weight_noi
     if mask is None:
         mask = np.zeros(data.shape, dtype=bool)
     mask = np.ascontiguousarray(mask, dtype=bool)
-    if not np.all(np.isfinite(data[~mask])):
+    if (~np.isfinite(data) & ~mask).any():
         raise InputError("the image holds NaN or infinite values in unmasked pixels; mask them first "
                          "(load_image does this).")
-    data = np.where(mask, 0.0, data).astype(np.float32)
+    if mask.any():
+        data = np.where(mask, np.float32(0.0), data)
 
     bkg = sep.Background(data, mask=mask, bw=config.back_size, bh=config.back_size,
                          fw=config.back_filtersize, fh=config.back_filtersize)
