@@ -81,8 +81,10 @@ def run_tasks(fn: Callable[[Any], Any], tasks: Sequence, *, on_result: Callable[
             with ProcessPoolExecutor(max_workers=min(workers, len(tasks)), mp_context=_mp_context()) as pool:
                 futures = {pool.submit(fn, task): task for task in tasks}
                 try:
-                    for fut in as_completed(futures):
-                        on_result(futures[fut], fut.result())
+                    for fut in as_completed(list(futures)):
+                        # pop: a finished future holds its result, so keeping it would grow the
+                        # main process with the number of tasks
+                        on_result(futures.pop(fut), fut.result())
                         bar.update()
                 except BaseException:
                     for fut in futures:
@@ -110,8 +112,11 @@ def _run_dask(fn, tasks: Iterable, on_result, workers: int, scheduler: str | Non
     try:
         futures = client.map(fn, tasks, pure=False)
         index = {f.key: t for f, t in zip(futures, tasks)}
-        for fut in dask_completed(futures):
-            on_result(index[fut.key], fut.result())
+        completed = dask_completed(futures)
+        del futures  # as_completed holds them until they finish; released one by one below
+        for fut in completed:
+            on_result(index.pop(fut.key), fut.result())
+            fut.release()
             bar.update()
     finally:
         client.close()
