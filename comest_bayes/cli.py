@@ -98,26 +98,22 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+#: Command-line shortcuts: option attribute -> the configuration key it sets.
+_SHORTCUTS = {"backend": "detection.backend", "thresh": "detection.thresh", "minarea": "detection.minarea",
+              "kinds": "injection.kinds", "nsims": "injection.nsims", "density": "injection.density",
+              "model": "fit.model"}
+
+
 def _config_from_args(args):
     from .config import load_config
 
     overrides = list(args.overrides)
-    if args.backend is not None:
-        overrides.append(f"detection.backend={args.backend}")
-    if args.thresh is not None:
-        overrides.append(f"detection.thresh={args.thresh}")
-    if args.minarea is not None:
-        overrides.append(f"detection.minarea={args.minarea}")
+    for option, key in _SHORTCUTS.items():
+        value = getattr(args, option)
+        if value is not None:
+            overrides.append(f"{key}={value}")
     if args.no_bnb:
         overrides.append("sourcefree.bnb=false")
-    if args.kinds is not None:
-        overrides.append(f"injection.kinds={args.kinds}")
-    if args.nsims is not None:
-        overrides.append(f"injection.nsims={args.nsims}")
-    if args.density is not None:
-        overrides.append(f"injection.density={args.density}")
-    if args.model is not None:
-        overrides.append(f"fit.model={args.model}")
     return load_config(args.config, overrides, seed=args.seed)
 
 

@@ -29,7 +29,7 @@ from .catalog import (FLAG_APER_TRUNC, FLAG_BLENDED, FLAG_DEBLEND_OVERFLOW, FLAG
 from .config import DetectionConfig
 from .errors import ConfigError, DetectionOverflowError, InputError
 
-__all__ = ["DetectionResult", "detect", "detect_array", "filter_kernel", "noise_map"]
+__all__ = ["DetectionResult", "detect", "detect_array", "detect_with_backend", "filter_kernel", "noise_map"]
 
 #: SExtractor's ``default.conv``: 3x3 "all-ground" kernel with FWHM = 2 pixels.
 DEFAULT_CONV = np.array([[1, 2, 1], [2, 4, 2], [1, 2, 1]], dtype=np.float32)
@@ -312,16 +312,22 @@ def measure(data_sub, objs, *, noise, mask, back, config: DetectionConfig, zerop
     }
 
 
-def detect(image, config: DetectionConfig = DetectionConfig(), workdir=None) -> DetectionResult:
-    """Detect sources on an :class:`~comest_bayes.image.ImageData` with the configured backend.
+def detect_with_backend(data: np.ndarray, *, config: DetectionConfig = DetectionConfig(), workdir=None,
+                        **kwargs) -> DetectionResult:
+    """:func:`detect_array` or the SExtractor binary, as ``config.backend`` says (same arguments).
 
     ``workdir`` is where the SExtractor backend writes its temporary files
     (a private temporary directory by default).
     """
-    kwargs = dict(mask=image.mask, weight_noise=image.noise, zeropoint=image.zeropoint, gain=image.gain,
-                  saturation=image.saturation, wcs=image.wcs, config=config)
     if config.backend == "sextractor":
         from .sextractor import detect_sextractor
 
-        return detect_sextractor(image.data, workdir=workdir, **kwargs)
-    return detect_array(image.data, **kwargs)
+        return detect_sextractor(data, workdir=workdir, config=config, **kwargs)
+    return detect_array(data, config=config, **kwargs)
+
+
+def detect(image, config: DetectionConfig = DetectionConfig(), workdir=None) -> DetectionResult:
+    """Detect sources on an :class:`~comest_bayes.image.ImageData` with the configured backend."""
+    return detect_with_backend(image.data, config=config, workdir=workdir, mask=image.mask, weight_noise=image.noise,
+                               zeropoint=image.zeropoint, gain=image.gain, saturation=image.saturation,
+                               wcs=image.wcs)

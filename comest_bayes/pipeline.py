@@ -271,7 +271,7 @@ def _auto_mag_range(image: ImageData, det: DetectionResult, nea: float) -> tuple
 def _injection_stages(run: RunDirectory, image: ImageData, det: DetectionResult, config: RunConfig,
                       compute: "ComputeOptions", log, timings: dict) -> dict:
     from . import ratios as R
-    from .detection import detect_array
+    from .detection import detect_with_backend
     from .executors import run_tasks
     from .recovery import RealizationTask, SimContext, merge_realizations, realization_file, run_realization, \
         write_realization
@@ -290,12 +290,9 @@ def _injection_stages(run: RunDirectory, image: ImageData, det: DetectionResult,
         t0 = time.perf_counter()
         base = fits.getdata(run.file(base_name)).astype(np.float32)
         weight_noise = det.noise if det.meta.get("noisemod") == "weight" else None
-        if config.detection.backend == "sextractor":
-            from .sextractor import detect_sextractor as _det
-        else:
-            _det = detect_array
-        bdet = _det(base, mask=image.mask, weight_noise=weight_noise, zeropoint=image.zeropoint, gain=image.gain,
-                    saturation=image.saturation, wcs=image.wcs, config=config.detection)
+        bdet = detect_with_backend(base, mask=image.mask, weight_noise=weight_noise, zeropoint=image.zeropoint,
+                                   gain=image.gain, saturation=image.saturation, wcs=image.wcs,
+                                   config=config.detection)
         files = [run.write_table("baseline.fits", bdet.catalog),
                  run.write_image("mask.fits", image.mask.astype(np.uint8), header)]
         mag_range = tuple(inj.mag_range) if inj.mag_range else _auto_mag_range(image, det, _psf_nea(config, image))

@@ -193,16 +193,11 @@ def realization_file(directory, kind: str, index: int) -> Path:
 
 def _detect(image, mask, noise, ctx: SimContext):
     """Re-detect with the run's detection configuration and resolved noise mode."""
-    from .detection import detect_array
+    from .detection import detect_with_backend
 
-    weight_noise = noise if ctx.noise_mode == "weight" else None
-    kw = dict(mask=mask, weight_noise=weight_noise, zeropoint=ctx.zeropoint, gain=ctx.gain,
-              saturation=ctx.saturation, wcs=ctx.wcs, config=ctx.detection)
-    if ctx.detection.backend == "sextractor":
-        from .sextractor import detect_sextractor
-
-        return detect_sextractor(image, **kw)
-    return detect_array(image, **kw)
+    return detect_with_backend(image, mask=mask, weight_noise=noise if ctx.noise_mode == "weight" else None,
+                               zeropoint=ctx.zeropoint, gain=ctx.gain, saturation=ctx.saturation, wcs=ctx.wcs,
+                               config=ctx.detection)
 
 
 def run_realization(task: RealizationTask) -> RealizationResult:
