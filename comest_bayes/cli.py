@@ -4,6 +4,9 @@
     Run every stage on an image.
 ``comest-bayes demo [--out DIR]``
     Synthesize the built-in demo tile and run every stage on it.
+``comest-bayes report DIR``
+    Write the self-contained HTML report of a run (``DIR/report.html``); ``run``
+    and ``demo`` write it at their end unless given ``--no-report``.
 
 User mistakes (a missing file, an unreadable header, a run directory holding
 another run) are printed as one ``error:`` line without a traceback and exit
@@ -51,8 +54,22 @@ def _add_config_options(p: argparse.ArgumentParser) -> None:
                    help="Dask scheduler address, e.g. tcp://host:8786 (implies --executor dask); "
                         "--executor dask without it starts a local cluster")
     o = p.add_argument_group("output")
-    o.add_argument("--quiet", action="store_true", help="print only errors")
-    o.add_argument("--debug", action="store_true", help="show tracebacks of errors")
+    o.add_argument("--no-report", action="store_true",
+                   help="do not write report.html at the end (write it later with: comest-bayes report DIR)")
+    _add_output_options(o)
+
+
+def _add_output_options(group) -> None:
+    group.add_argument("--quiet", action="store_true", help="print only errors")
+    group.add_argument("--debug", action="store_true", help="show tracebacks of errors")
+
+
+def _center(text: str) -> tuple[float, float]:
+    try:
+        x, y = (float(v) for v in text.split(","))
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected X,Y in pixels (e.g. 1500,800), got {text!r}") from None
+    return x, y
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -95,6 +112,17 @@ def build_parser() -> argparse.ArgumentParser:
     demo.add_argument("--out", default="comest-demo", help="run directory (default ./comest-demo)")
     demo.add_argument("--size", type=int, default=3000, help="tile size in pixels (default 3000)")
     _add_config_options(demo)
+
+    rep = sub.add_parser("report", help="write the self-contained HTML report of a run",
+                         description="Read a run directory and write one HTML file with every figure embedded "
+                                     "(also saved as PNG and PDF under DIR/figures/), the tables, the configuration, "
+                                     "the input facts and the stage timings. It needs no network to view.")
+    rep.add_argument("dir", help="run directory (the --out of comest-bayes run or demo)")
+    rep.add_argument("--out", default=None, help="HTML file to write (default DIR/report.html)")
+    rep.add_argument("--center", type=_center, default=None, metavar="X,Y",
+                     help="centre of the image cutouts, 0-based pixels (default the image centre)")
+    rep.add_argument("--size", type=int, default=400, help="side of the image cutouts in pixels (default 400)")
+    _add_output_options(rep.add_argument_group("output"))
     return parser
 
 
@@ -138,12 +166,28 @@ def _cmd_run(args, log) -> int:
                            weight_type=args.weight_type, weight_hdu=args.weight_hdu, mask=args.mask,
                            mask_hdu=args.mask_hdu, mask_bits=args.mask_bits)
     result = run_pipeline(options, config, args.out, log=log, compute=_compute_from_args(args))
-    _final_summary(result, log)
+    _final_summary(result, log, _report_after_run(result.out_dir, args, log))
     return 0
 
 
-def _final_summary(result, log) -> None:
-    """A concise end-of-run summary: binned m50 per kind and where the outputs are."""
+def _report_after_run(out_dir, args, log):
+    """Write the report at the end of run/demo; its failure does not fail the finished run."""
+    if args.no_report:
+        return None
+    from .report import write_report
+
+    try:
+        return write_report(out_dir, log=log)
+    except Exception as exc:
+        if args.debug:
+            raise
+        log(f"warning: the report could not be written ({type(exc).__name__}: {exc}); the run's outputs are "
+            f"complete. Retry with: comest-bayes report {out_dir} --debug")
+        return None
+
+
+def _final_summary(result, log, report=None) -> None:
+    """A concise end-of-run summary: binned and posterior m50 per kind and where the outputs are."""
     kinds = (result.summary or {}).get("kinds", {})
     for kind, info in kinds.items():
         m50 = info.get("m50_binned")
@@ -155,6 +199,8 @@ def _final_summary(result, log) -> None:
                      f"[{model['m50']['lo68']:.2f}, {model['m50']['hi68']:.2f}] (68%)")
         log(text + f"  ({info['counts']['usable']} injections, {info['counts']['realizations']} realizations)")
     log(f"done: outputs in {result.out_dir} (summary.json, catalogs/, maps/)")
+    if report is not None:
+        log(f"report: {report}")
 
 
 def _cmd_demo(args, log) -> int:
@@ -185,7 +231,16 @@ def _cmd_demo(args, log) -> int:
     options = ImageOptions(path=str(image_path), weight=str(inputs / "demo_weight.fits"), weight_type="ivar",
                            mask=str(inputs / "demo_mask.fits"), mask_bits=MASK_GAP)
     result = run_pipeline(options, config, out, log=log, compute=_compute_from_args(args))
-    _final_summary(result, log)
+    _final_summary(result, log, _report_after_run(result.out_dir, args, log))
+    return 0
+
+
+def _cmd_report(args, log) -> int:
+    from .report import write_report
+
+    if args.size < 16:
+        raise ComestError(f"--size {args.size} is too small for an image cutout; use at least 16 pixels.")
+    write_report(args.dir, args.out, log=log, center=args.center, size=args.size)
     return 0
 
 
@@ -203,7 +258,7 @@ def main(argv=None) -> int:
 
     # Warnings (unconverged samplers, prior-dominated fits) as one readable line each.
     warnings.formatwarning = lambda message, category, *rest, **kw: f"warning: {message}\n"
-    handler = {"run": _cmd_run, "demo": _cmd_demo}[args.command]
+    handler = {"run": _cmd_run, "demo": _cmd_demo, "report": _cmd_report}[args.command]
     try:
         return handler(args, log)
     except ComestError as exc:

@@ -245,7 +245,8 @@ def run_pipeline(options: ImageOptions, config: RunConfig, out_dir, *,
     # ---- injection and recovery ------------------------------------------------------
     summary = _injection_stages(run, image, det, config, compute or ComputeOptions(), log, timings)
 
-    run.update(timings=timings)
+    # a resumed run keeps the times of the stages it did not redo
+    run.update(timings={**run.state.get("timings", {}), **timings})
     return RunResult(out_dir=run.path, image=image, detection=det, fwhm=fwhm, resumed=run.resumed, timings=timings,
                      summary=summary)
 
@@ -374,8 +375,8 @@ def _injection_stages(run: RunDirectory, image: ImageData, det: DetectionResult,
 
     # ---- the Bayesian completeness and purity models ---------------------------------
     t0 = time.perf_counter()
-    _fit_stages(run, image, det, config, kinds, edges, mag_range, log, compute)
-    timings["fit"] = round(time.perf_counter() - t0, 3)
+    if _fit_stages(run, image, det, config, kinds, edges, mag_range, log, compute):
+        timings["fit"] = round(time.perf_counter() - t0, 3)
 
     summary = {
         "format": SUMMARY_FORMAT,
@@ -390,14 +391,17 @@ def _injection_stages(run: RunDirectory, image: ImageData, det: DetectionResult,
 
 
 def _fit_stages(run: RunDirectory, image: ImageData, det: DetectionResult, config: RunConfig, kinds: dict,
-                edges, mag_range, log, compute: "ComputeOptions") -> None:
-    """Fit completeness (and purity) per kind, in parallel; add their entries to ``kinds`` (resumable)."""
+                edges, mag_range, log, compute: "ComputeOptions") -> int:
+    """Fit completeness (and purity) per kind, in parallel; add their entries to ``kinds`` (resumable).
+
+    Returns the number of fits run now (0 when all were done earlier or no model is fitted).
+    """
     from .executors import run_tasks
     from .fitting import fit_task
     from .rundir import atomic_path
 
     if config.fit.model == "none":
-        return
+        return 0
     run.file("posterior").mkdir(exist_ok=True)
     centers = 0.5 * (edges[:-1] + edges[1:])
     wcs_header = None if image.wcs is None else image.wcs.to_header(relax=True).tostring()
@@ -454,3 +458,4 @@ def _fit_stages(run: RunDirectory, image: ImageData, det: DetectionResult, confi
 
     run_tasks(fit_task, tasks, on_result=on_result, executor=compute.executor, workers=compute.workers,
               scheduler=compute.scheduler, progress=compute.progress, desc="fits")
+    return len(tasks)
