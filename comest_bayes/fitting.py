@@ -33,7 +33,7 @@ from astropy.table import Table
 from .config import RunConfig
 from .errors import InputError
 from .inference import fit
-from .likelihood import CompletenessModel, compress_for, covariates_from_outcomes
+from .likelihood import CompletenessModel, compress_for, covariate_warnings, covariates_from_outcomes
 from .modelspec import load_spec, resolve_candidates
 from .posterior import CompletenessPosterior, coarse_noise_map, footprint_sample
 from .seeding import int_seed_for, rng_for
@@ -180,6 +180,9 @@ def fit_kind(outcomes: Table, *, kind: str, quantity: str, requested: str, confi
         chosen_spec = spec
         model = CompletenessModel(spec, data)
         result = fit(model, seed=seed, min_ess=config.fit.min_ess, max_steps=config.fit.max_steps)
+    for w in covariate_warnings(chosen_spec, data):
+        warnings.warn(w, UserWarning, stacklevel=2)
+        warn.append(w)
     draws = result.draws()
     diagnostics = result.posterior.diagnostics.to_dict() if result.posterior is not None else {}
     post = CompletenessPosterior(

@@ -105,6 +105,7 @@ __all__ = [
     "compress_for",
     "uncompressed",
     "covariates_needed",
+    "covariate_warnings",
     "link_logs",
     "mixture_logs",
     "logistic_mixture_logs",
@@ -580,6 +581,62 @@ def covariates_needed(spec: ModelSpec) -> tuple[str, ...]:
     if spec.size_covariate:
         need.append("size")
     return tuple(need)
+
+
+#: Below these extents a covariate is "constant" for the fit (its slope is set by the prior):
+#: depth in mag, size in dex, and the side of the box holding every injection in (u, v) units
+#: (0.25 = one eighth of the image side).
+SPREAD_MIN = {"depth": 0.02, "size": 0.01, "uv": 0.25}
+
+
+def covariate_warnings(spec, data: BinomialData) -> list[str]:
+    """Messages for covariates that a model uses but the injections do not vary.
+
+    Parameters
+    ----------
+    spec : ModelSpec or str
+        The model to be fitted (a selection spec counts as its most complex
+        candidate: every covariate any candidate uses).
+    data : BinomialData
+        The cells it is fitted to.
+
+    Returns
+    -------
+    list of str
+        One message per covariate group (``depth``, ``uv``, ``size``) that the
+        model uses and whose range over the injections is below
+        :data:`SPREAD_MIN`; the matching slopes (``beta_depth``, ``w_depth``,
+        the smooth coefficients, ``beta_size``) are then set by their priors,
+        and maps or queries away from the sampled range are the prior's
+        extrapolation.  Empty when every used covariate varies.
+    """
+    spec = load_spec(spec)
+    specs = resolve_candidates(spec) if spec.is_selection else [spec]
+    need = set()
+    for s in specs:
+        need.update(covariates_needed(s))
+    cov = data.cov
+    out = []
+    if "depth" in need:
+        span = float(cov.depth.max() - cov.depth.min())
+        if span < SPREAD_MIN["depth"]:
+            out.append(f"the depth covariate spans only {span:.3g} mag over the {data.ntotal} injections (noise "
+                       f"uniform, or all injections in one place): the depth slope of {spec.name!r} is set by its "
+                       "prior; use a model without a depth term or inject over the whole image.")
+    if "uv" in need:
+        su = float(cov.u.max() - cov.u.min())
+        sv = float(cov.v.max() - cov.v.min())
+        if max(su, sv) < SPREAD_MIN["uv"]:
+            out.append(f"all {data.ntotal} injections lie in one small spatial cell (u in [{cov.u.min():.3f}, "
+                       f"{cov.u.max():.3f}], v in [{cov.v.min():.3f}, {cov.v.max():.3f}] of [-1, 1]): the smooth "
+                       f"spatial terms of {spec.name!r} are set by their prior, and the m50 map away from that cell "
+                       "is the prior's extrapolation; inject over the whole image.")
+    if "size" in need:
+        span = float(cov.size.max() - cov.size.min())
+        if span < SPREAD_MIN["size"]:
+            out.append(f"the size covariate spans only {span:.3g} dex over the {data.ntotal} injections: the size "
+                       f"slope of {spec.name!r} is set by its prior.")
+    return out
 
 
 def compress_for(specs, cov: Covariates, detected, **kwargs) -> BinomialData:

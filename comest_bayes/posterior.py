@@ -31,6 +31,9 @@ from .modelspec import ModelSpec, spec_from_mapping
 
 __all__ = ["CompletenessPosterior", "coarse_noise_map", "footprint_sample", "crossing_magnitudes"]
 
+#: Largest number of (draw, position, magnitude) values evaluated at once by image averages.
+AVERAGE_ELEMENTS = 4_000_000
+
 #: Percentiles reported for the 68% and 95% bands.
 BANDS = (2.5, 16.0, 50.0, 84.0, 97.5)
 
@@ -155,6 +158,10 @@ class CompletenessPosterior:
         hlr = np.nan if hlr_arcsec is None else hlr_arcsec
         m, x, y, hlr = np.broadcast_arrays(np.asarray(m, float), np.asarray(x, float), np.asarray(y, float),
                                            np.asarray(hlr, float))
+        for name, arr in (("magnitude", m), ("x", x), ("y", y)):
+            if not np.all(np.isfinite(arr)):
+                raise InputError(f"completeness query with {int((~np.isfinite(arr)).sum())} non-finite {name} "
+                                 "value(s); give finite magnitudes and positions (drop NaN rows first).")
         href = self.meta.get("hlr_ref")
         with np.errstate(divide="ignore", invalid="ignore"):
             size = np.where(np.isfinite(hlr) & (hlr > 0) & bool(href), np.log10(hlr / (href or 1.0)), 0.0)
@@ -213,8 +220,18 @@ class CompletenessPosterior:
         pos = self.footprint if self._spatial() else self.footprint[:1]
         pos = pos[:npos]
         cov = self.covariates(mags[None, :], pos[:, 0:1], pos[:, 1:2])
-        f = self.model.prob(thetas, cov).reshape(len(thetas), len(pos), len(mags))
-        return f.mean(axis=1)
+        # draws in chunks of at most AVERAGE_ELEMENTS numbers (memory), padded to one compiled shape
+        per_draw = len(pos) * len(mags)
+        chunk = int(max(1, min(len(thetas), AVERAGE_ELEMENTS // max(1, per_draw))))
+        out = np.empty((len(thetas), len(mags)))
+        for start in range(0, len(thetas), chunk):
+            block = thetas[start:start + chunk]
+            nb = len(block)
+            if nb < chunk:
+                block = np.concatenate([block, np.repeat(block[-1:], chunk - nb, axis=0)])
+            f = self.model.prob(block, cov).reshape(chunk, len(pos), len(mags))
+            out[start:start + nb] = f[:nb].mean(axis=1)
+        return out
 
     def curve(self, mags, *, x=None, y=None, ra=None, dec=None, nsamples: int | None = 1000) -> dict:
         """Median and 68% / 95% bands of f(m) (image average, or at a position)."""
@@ -233,9 +250,24 @@ class CompletenessPosterior:
         level (e.g. a plateau A below it).
         """
         lo, hi = self.meta.get("mag_range", (15.0, 30.0))
-        grid = np.arange(lo - 2.0, hi + 2.0 + step, step)
+        # Two passes (the image-average curve is monotone in m): a coarse grid locates every draw's
+        # crossings, then the fine grid covers only the window spanned by them.  For spatial models
+        # this is ~10 times less work than the fine grid over the whole range, for the same numbers.
+        coarse_step = max(float(step), 0.1)
+        coarse = np.arange(lo - 2.0, hi + 2.0 + coarse_step, coarse_step)
+        fc = self.average_curve(coarse, nsamples=nsamples)
+        first = {float(lev): crossing_magnitudes(coarse, fc, lev) for lev in levels}
+        found = np.concatenate([c[np.isfinite(c)] for c in first.values()])
+        if found.size == 0 or coarse_step <= step:
+            return first
+        w_lo, w_hi = float(found.min()) - coarse_step, float(found.max()) + coarse_step
+        grid = np.arange(w_lo, w_hi + step, step)
         f = self.average_curve(grid, nsamples=nsamples)
-        return {float(lev): crossing_magnitudes(grid, f, lev) for lev in levels}
+        out = {}
+        for lev, c in first.items():
+            fine = crossing_magnitudes(grid, f, lev)
+            out[lev] = np.where(np.isfinite(c), fine, np.nan)
+        return out
 
     def summary_magnitudes(self, levels=(0.5, 0.8, 0.9)) -> dict:
         """JSON-ready medians and 68% intervals of m50, m80, m90."""

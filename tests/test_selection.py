@@ -192,3 +192,30 @@ def test_select_model_with_completeness_model(beta_depth, expected):
         assert rows["logistic"]["delta_elpd"] < -50
     else:
         assert abs(rows["logistic_depth"]["delta_elpd"]) < 4.0
+
+
+@pytest.mark.slow
+def test_auto_selection_picks_a_smooth_term_for_variation_not_in_the_weight_map():
+    # m50 varies smoothly across the field (m50 = 24 + 0.4 u + 0.2 v^2, e.g. vignetting or a PSF trend that the
+    # weight map does not know), while the depth covariate is uniform (noise map flat): the depth model cannot
+    # explain the trend, a smooth term can.  5000 injections, w = 0.2: the trend moves m50 by +-0.4 mag, worth
+    # hundreds of nats, far beyond the 4-nat margin of the rule.
+    from comest_bayes.likelihood import Covariates, compress_for
+
+    rng = np.random.default_rng(23)
+    n = 5000
+    u, v = rng.uniform(-1, 1, n), rng.uniform(-1, 1, n)
+    m = rng.uniform(22.0, 26.5, n)
+    m50 = 24.0 + 0.4 * u + 0.2 * v**2
+    det = rng.random(n) < 0.97 / (1.0 + np.exp(-(m50 - m) / 0.2))
+    cov = Covariates.make(m, depth=0.0, u=u, v=v)
+    data = compress_for("auto", cov, det, dm=0.04)
+    res = select_model(data, "auto", seed=6, min_ess=150, chunk=200, loo_draws=800)
+    assert res.chosen == "logistic_smooth", res.format_table()
+    rows = {r["name"]: r for r in res.table}
+    assert rows["logistic"]["delta_elpd"] < -50 and rows["logistic_depth"]["delta_elpd"] < -50
+    # the smooth field found is the truth: c_10 (the P1(u) coefficient) ~ 0.4 mag
+    fit = res.fits["logistic_smooth"]
+    model = res.models["logistic_smooth"]
+    c10 = fit.posterior.samples[:, model.names.index("c_10")]
+    assert np.median(c10) == pytest.approx(0.4, abs=0.08)  # posterior sd ~0.02 at 5000 injections: 4 sd
