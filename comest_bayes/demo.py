@@ -69,6 +69,13 @@ rotation_deg : float, default 10.0
     north = +y is exercised.
 keep_model : bool, default False
     Also return the noise-free model (sky + sources) as ``DemoTile.model``.
+galaxy_counts, star_counts : (n_ref, slope, m_ref) or None, default None
+    Replace the galaxy (or star) number counts below by one power law
+    ``dN/dm = n_ref 10**(slope (m - m_ref))`` deg^-2 mag^-1 (before the
+    ``galaxy_density`` / ``star_density`` multiplier), over ``mag_bright``
+    (galaxies) or r = 16 (stars) to ``mag_faint``: mock populations of known
+    counts, e.g. for :mod:`comest_bayes.lf`.  None (the default) keeps the
+    populations described below; the ``n_saturated_stars`` are added either way.
 
 With the defaults the tile holds ~17500 galaxies (r = 17 to 26.5) and ~215
 stars (4 of them saturated); making it takes ~11 s on one core (peak memory
@@ -280,6 +287,8 @@ class _Spec:
     ra_center: float = 150.1
     dec_center: float = 2.2
     rotation_deg: float = 10.0
+    galaxy_counts: tuple | None = None
+    star_counts: tuple | None = None
 
     def __post_init__(self):
         def need(ok, name, fix):
@@ -306,6 +315,14 @@ class _Spec:
         need(self.star_density >= 0, "star_density", "use a non-negative multiplier")
         need(self.faint_margin > -5, "faint_margin", "use a margin in magnitudes, e.g. 2")
         need(-90 < self.dec_center < 90, "dec_center", "use a declination strictly between -90 and 90 deg")
+        for name in ("galaxy_counts", "star_counts"):
+            value = getattr(self, name)
+            if value is not None:
+                ok = (isinstance(value, (tuple, list)) and len(value) == 3
+                      and all(isinstance(v, (int, float)) and np.isfinite(v) for v in value) and value[0] > 0)
+                need(ok, name, "use (n_ref, slope, m_ref): a positive density in deg^-2 mag^-1 at m_ref, a slope "
+                               "d log10 N / dm and a reference magnitude, e.g. (2e4, 0.3, 23.0)")
+                object.__setattr__(self, name, tuple(float(v) for v in value))
 
     @property
     def fwhm_pix(self) -> float:
@@ -428,6 +445,9 @@ def _sample_power_law(rng, n0: float, slope: float, m0: float, lo: float, hi: fl
 
 def _sample_galaxy_mags(rng, spec: _Spec, mag_faint: float) -> np.ndarray:
     area = spec.area_deg2 * spec.galaxy_density
+    if spec.galaxy_counts is not None:
+        n_ref, slope, m_ref = spec.galaxy_counts
+        return _sample_power_law(rng, n_ref, slope, m_ref, spec.mag_bright, mag_faint, area)
     n0 = _gal_faint_norm()
     bright = _sample_power_law(rng, n0, GAL_BRIGHT_SLOPE, GAL_BREAK_MAG, spec.mag_bright,
                                min(GAL_BREAK_MAG, mag_faint), area)
@@ -472,8 +492,9 @@ def _galaxy_catalog(spec: _Spec, seed: int, mag_faint: float) -> dict:
 
 def _star_catalog(spec: _Spec, seed: int, mag_faint: float) -> dict:
     rng = rng_for(seed, "demo", "stars")
-    mag = _sample_power_law(rng, STAR_DENSITY_AT_R20, STAR_SLOPE, 20.0, STAR_MAG_BRIGHT, mag_faint,
-                            spec.area_deg2 * spec.star_density)
+    n_ref, slope, m_ref = spec.star_counts if spec.star_counts is not None else (STAR_DENSITY_AT_R20, STAR_SLOPE,
+                                                                               20.0)
+    mag = _sample_power_law(rng, n_ref, slope, m_ref, STAR_MAG_BRIGHT, mag_faint, spec.area_deg2 * spec.star_density)
     x, y = _sample_positions(rng, mag.size, spec.size)
     # Bright, saturated stars, kept away from the edges and the chip gap.
     rng_b = rng_for(seed, "demo", "bright_stars")
@@ -822,7 +843,8 @@ def make_demo_tile(seed: int = 0, *, size: int = 3000, pixel_scale: float = 0.26
                    gap_width: int = 40, n_saturated_stars: int = 4, galaxy_density: float = 1.0,
                    star_density: float = 1.0, mag_bright: float = 17.0, faint_margin: float = 2.0,
                    ra_center: float = 150.1, dec_center: float = 2.2, rotation_deg: float = 10.0,
-                   keep_model: bool = False) -> DemoTile:
+                   keep_model: bool = False, galaxy_counts: tuple | None = None,
+                   star_counts: tuple | None = None) -> DemoTile:
     """Synthesize the demo tile.
 
     Every parameter is described in the module docstring; the defaults make
@@ -849,7 +871,7 @@ def make_demo_tile(seed: int = 0, *, size: int = 3000, pixel_scale: float = 0.26
                  shallow_quadrant=shallow_quadrant, gap_width=gap_width, n_saturated_stars=n_saturated_stars,
                  galaxy_density=galaxy_density, star_density=star_density, mag_bright=mag_bright,
                  faint_margin=faint_margin, ra_center=ra_center, dec_center=dec_center,
-                 rotation_deg=rotation_deg)
+                 rotation_deg=rotation_deg, galaxy_counts=galaxy_counts, star_counts=star_counts)
     truth, info = _truth_table(spec, seed)
     shape = (spec.size, spec.size)
 
@@ -897,6 +919,11 @@ def make_demo_tile(seed: int = 0, *, size: int = 3000, pixel_scale: float = 0.26
     truth["masked"] = mask[iy, ix] != 0
 
     params = asdict(spec)
+    for name in ("galaxy_counts", "star_counts"):  # recorded only when used, so default params are unchanged
+        if params[name] is None:
+            params.pop(name)
+        else:
+            params[name] = list(params[name])
     params.update({
         "seed": int(seed),
         "sigma_sky": spec.sigma0,

@@ -1,0 +1,261 @@
+"""Benchmark: number-count recovery, interval coverage, and the shortcuts it replaces.
+
+Replicate mocks (fast path, no images)
+--------------------------------------
+Each replicate draws everything from known truths instead of rendering images:
+
+* injections: ``--ninj`` true magnitudes uniform in [19, 26], detected with a
+  known completeness ``f(m) = 0.995 / (1 + exp((m - 23) / 0.3))``; the
+  completeness model ``logistic`` is fitted to these outcomes with the
+  package's own machinery (:func:`comest_bayes.inference.fit`), giving a real
+  :class:`~comest_bayes.posterior.CompletenessPosterior`;
+* photometric transfer: each detection is measured with bias +0.02 mag, a
+  scatter growing towards the limit, ``sigma(m) = 0.02 + 0.25 x 10**(0.4 (m - 23.5))``
+  (capped at 0.6), and 3% blends measured 0.75 mag too bright; the transfer
+  is measured from the detected injections (:mod:`comest_bayes.transfer`);
+* population: a power law ``log_n = 4.3`` (deg^-2 mag^-1 at m = 23),
+  ``slope = 0.3`` over 17-28 on 0.0123 deg^2, detected and measured the same way.
+
+Fitted on ``[20, 24)`` (measured; f(24) ~ 0.03, so the range reaches the detection limit) with:
+
+``joint``      the full forward model, completeness sampled jointly;
+``fixed``      the full forward model with the completeness held at its posterior median;
+``no_transfer`` multiply the model by the completeness, ignore the photometric transfer;
+``binned``     divide the binned counts (0.25 mag, measured magnitudes) by the binned
+               completeness and fit a straight line to log10 of the corrected counts
+               (weighted least squares, Poisson weights; Gaussian intervals).
+
+Reported per method: mean bias of the slope and of log_n, mean posterior sd,
+and the fraction of replicates whose 68% and 95% intervals hold the truth
+(binomial standard error ``sqrt(p (1 - p) / R)``).
+
+Rendered mock (end to end)
+--------------------------
+One demo tile (1000 x 1000 px) whose point sources follow the same power law
+(``make_demo_tile(star_counts=(2e4, 0.3, 23))``, no galaxies), run through the
+pipeline (4 point-source realizations, ``logistic`` completeness), then
+:func:`comest_bayes.lf.run_lf` in joint and fixed mode.
+
+Usage::
+
+    python benchmarks/bench_lf.py               # 20 replicates + the rendered mock, ~8 min on 2 cores
+    python benchmarks/bench_lf.py --replicates 4 --no-render   # quick check
+
+Writes ``benchmarks/results/lf.json`` and ``benchmarks/results/lf.png``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import tempfile
+import time
+import warnings
+from pathlib import Path
+
+import numpy as np
+
+TRUTH = {"log_n": 4.3, "slope": 0.3}
+AREA = 0.0123
+RANGE = (20.0, 24.0)
+M50, W, A = 23.0, 0.3, 0.995
+METHODS = ("joint", "fixed", "no_transfer", "binned")
+
+
+def completeness(m):
+    return A / (1.0 + np.exp((np.asarray(m) - M50) / W))
+
+
+def measure(rng, true):
+    sigma = np.minimum(0.02 + 0.25 * 10 ** (0.4 * (true - 23.5)), 0.6)
+    obs = true + 0.02 + sigma * rng.standard_normal(true.size)
+    blend = rng.random(true.size) < 0.03
+    obs[blend] -= 0.75
+    return obs
+
+
+def sample_powerlaw(rng, log_n, slope, area, lo, hi, m_ref=23.0):
+    b = slope * math.log(10.0)
+    expected = area * 10**log_n * (math.exp(b * (hi - m_ref)) - math.exp(b * (lo - m_ref))) / b
+    u = rng.random(rng.poisson(expected))
+    return lo + np.log1p(u * (math.exp(b * (hi - lo)) - 1.0)) / b
+
+
+def fit_completeness(rng, ninj, seed):
+    from comest_bayes.inference import fit
+    from comest_bayes.likelihood import CompletenessModel, compress_for, covariates_from_outcomes
+    from comest_bayes.modelspec import load_spec
+    from comest_bayes.posterior import CompletenessPosterior
+
+    true = rng.uniform(19.0, 26.0, ninj)
+    det = rng.random(ninj) < completeness(true)
+    spec = load_spec("logistic")
+    cov, outcome, meta = covariates_from_outcomes({"mag": true, "detected": det}, image_shape=None)
+    data = compress_for(spec, cov, outcome, meta=meta)
+    model = CompletenessModel(spec, data)
+    res = fit(model, seed=seed, min_ess=300)
+    post = CompletenessPosterior(spec=spec, samples=res.draws(), names=list(model.names),
+                                 meta={"sigma_ref": None, "hlr_ref": None, "image_shape": (100, 100),
+                                       "mag_range": [19.0, 26.0], "kind": "point", "quantity": "completeness"},
+                                 footprint=np.array([[50.0, 50.0]]))
+    return post, true[det], measure(rng, true[det])
+
+
+def binned_shortcut(obs, post, lo, hi, width=0.25):
+    edges = np.arange(lo, hi + 1e-9, width)
+    c = 0.5 * (edges[:-1] + edges[1:])
+    n = np.histogram(obs, edges)[0].astype(float)
+    f = np.median(post.average_curve(c, nsamples=300), axis=0)
+    ok = n > 0
+    y = np.log10(n[ok] / (f[ok] * AREA * width))
+    sig = 1.0 / (math.log(10.0) * np.sqrt(n[ok]))
+    x = c[ok] - 23.0
+    wts = 1.0 / sig**2
+    design = np.column_stack([np.ones_like(x), x])
+    cov = np.linalg.inv(design.T @ (design * wts[:, None]))
+    beta = cov @ design.T @ (wts * y)
+    sd = np.sqrt(np.diag(cov))
+    return {"log_n": (beta[0], sd[0]), "slope": (beta[1], sd[1])}
+
+
+def replicate(r, ninj, min_ess):
+    from comest_bayes.lf import build_inputs, fit_counts
+    from comest_bayes.seeding import int_seed_for, rng_for
+    from comest_bayes.transfer import measure_transfer
+
+    rng = rng_for(2024, "bench_lf", r)
+    post, t_det, o_det = fit_completeness(rng, ninj, int_seed_for(2024, "bench_lf", "comp", r))
+    tr = measure_transfer(t_det, o_det)
+    pop = sample_powerlaw(rng, TRUTH["log_n"], TRUTH["slope"], AREA, 17.0, 28.0)
+    det = rng.random(pop.size) < completeness(pop)
+    obs = measure(rng, pop[det])
+    out = {}
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        for method in ("joint", "fixed", "no_transfer"):
+            inputs = build_inputs(obs, area_deg2=AREA, mag_range=RANGE,
+                                  transfer=None if method == "no_transfer" else tr)
+            mode = "joint" if method == "joint" else "fixed"
+            res = fit_counts(inputs, "powerlaw", mode=mode, post=post, seed=r, min_ess=min_ess)
+            s = res.parameter_summary()
+            out[method] = {k: {q: s[k][q] for q in ("median", "sd", "lo68", "hi68", "lo95", "hi95")} for k in TRUTH}
+        b = binned_shortcut(obs, post, *RANGE)
+        out["binned"] = {k: {"median": float(v), "sd": float(s_), "lo68": float(v - s_), "hi68": float(v + s_),
+                             "lo95": float(v - 1.96 * s_), "hi95": float(v + 1.96 * s_)} for k, (v, s_) in b.items()}
+    out["n_objects"] = int(((obs >= RANGE[0]) & (obs < RANGE[1])).sum())
+    return out
+
+
+def summarise(reps):
+    table = {}
+    nrep = len(reps)
+    for method in METHODS:
+        row = {}
+        for k, truth in TRUTH.items():
+            med = np.array([r[method][k]["median"] for r in reps])
+            sd = np.array([r[method][k]["sd"] for r in reps])
+            c68 = np.mean([r[method][k]["lo68"] <= truth <= r[method][k]["hi68"] for r in reps])
+            c95 = np.mean([r[method][k]["lo95"] <= truth <= r[method][k]["hi95"] for r in reps])
+            row[k] = {"bias": float(med.mean() - truth), "bias_se": float(med.std(ddof=1) / math.sqrt(nrep))
+                      if nrep > 1 else None, "mean_sd": float(sd.mean()), "scatter_of_medians": float(med.std(ddof=1))
+                      if nrep > 1 else None, "coverage68": float(c68), "coverage95": float(c95),
+                      "coverage_se": float(math.sqrt(0.68 * 0.32 / nrep))}
+        table[method] = row
+    return table
+
+
+def rendered_mock(workdir: Path, min_ess):
+    from comest_bayes.config import load_config
+    from comest_bayes.demo import MASK_GAP, make_demo_tile, write_demo_tile
+    from comest_bayes.lf import run_lf
+    from comest_bayes.pipeline import ComputeOptions, ImageOptions, run_pipeline
+
+    t0 = time.perf_counter()
+    tile = make_demo_tile(seed=11, size=1000, galaxy_density=0.0, n_saturated_stars=0, star_counts=(2.0e4, 0.3, 23.0))
+    paths = write_demo_tile(tile, workdir / "tile")
+    cfg = load_config(overrides=["injection.nsims=4", "injection.kinds=point", "fit.model=logistic",
+                                 "fit.purity_model=none", "fit.min_ess=300", "injection.mag_range=[19.0,26.5]"], seed=1)
+    opts = ImageOptions(path=str(paths["image"]), weight=str(paths["weight"]), mask=str(paths["mask"]),
+                        mask_bits=MASK_GAP, fwhm=0.9 / 0.26)
+    run_pipeline(opts, cfg, workdir / "run", log=lambda s: None, compute=ComputeOptions(executor="serial"))
+    out = {"truth": {"log_n": math.log10(2.0e4), "slope": 0.3}}
+    for mode in ("joint", "fixed"):
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            res = run_lf(workdir / "run", kind="point", model="powerlaw", mode=mode, mag_range=(20.0, 24.5),
+                         seed=2, min_ess=min_ess, figures=False)
+        out[mode] = res.parameter_summary()
+        out["n_objects"] = res.n_objects
+        out["area_deg2"] = res.area_deg2
+    out["seconds"] = round(time.perf_counter() - t0, 1)
+    return out
+
+
+def figure(reps, table, path):
+    from matplotlib.figure import Figure
+
+    fig = Figure(figsize=(10, 4.2), layout="constrained")
+    ax1, ax2 = fig.subplots(1, 2)
+    colors = {"joint": "#0072B2", "fixed": "#009E73", "no_transfer": "#D55E00", "binned": "#CC79A7"}
+    for i, method in enumerate(METHODS):
+        med = np.array([r[method]["slope"]["median"] for r in reps])
+        lo = np.array([r[method]["slope"]["lo95"] for r in reps])
+        hi = np.array([r[method]["slope"]["hi95"] for r in reps])
+        x = np.arange(len(reps)) + 0.18 * (i - 1.5)
+        ax1.errorbar(x, med, yerr=[med - lo, hi - med], fmt="o", ms=3, color=colors[method], label=method)
+    ax1.axhline(TRUTH["slope"], color="k", lw=1)
+    ax1.set_xlabel("replicate")
+    ax1.set_ylabel("slope (median, 95% interval)")
+    ax1.legend(fontsize=8)
+    w = 0.2
+    for i, method in enumerate(METHODS):
+        for j, key in enumerate(("coverage68", "coverage95")):
+            vals = [table[method][p][key] for p in TRUTH]
+            ax2.bar(np.arange(2) + 2.3 * j + w * (i - 1.5), vals, width=w, color=colors[method],
+                    label=method if j == 0 else None)
+    for j, nominal in enumerate((0.68, 0.95)):
+        ax2.hlines(nominal, 2.3 * j - 0.5, 2.3 * j + 1.5, color="k", lw=1, ls="--")
+    ax2.set_xticks([0, 1, 2.3, 3.3], ["log_n 68%", "slope 68%", "log_n 95%", "slope 95%"])
+    ax2.set_ylabel("coverage of the truth")
+    ax2.set_ylim(0, 1.05)
+    ax2.set_title(f"{len(reps)} replicates; range {RANGE[0]}-{RANGE[1]} (f = 0.03 at the faint end)", fontsize=9)
+    fig.savefig(path, dpi=120)
+
+
+def main(argv=None):
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--replicates", type=int, default=20)
+    ap.add_argument("--ninj", type=int, default=3000)
+    ap.add_argument("--min-ess", type=float, default=300)
+    ap.add_argument("--no-render", action="store_true")
+    ap.add_argument("--out", default=str(Path(__file__).resolve().parent / "results"))
+    args = ap.parse_args(argv)
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    t0 = time.perf_counter()
+    reps = []
+    for r in range(args.replicates):
+        reps.append(replicate(r, args.ninj, args.min_ess))
+        print(f"replicate {r}: N = {reps[-1]['n_objects']}, slope " +
+              ", ".join(f"{m} {reps[-1][m]['slope']['median']:.3f}+-{reps[-1][m]['slope']['sd']:.3f}" for m in METHODS),
+              flush=True)
+    table = summarise(reps)
+    result = {"truth": TRUTH, "area_deg2": AREA, "mag_range": RANGE, "replicates": args.replicates,
+              "ninj": args.ninj, "summary": table, "per_replicate": reps,
+              "seconds_replicates": round(time.perf_counter() - t0, 1)}
+    if not args.no_render:
+        with tempfile.TemporaryDirectory() as tmp:
+            result["rendered_mock"] = rendered_mock(Path(tmp), args.min_ess)
+    result["seconds_total"] = round(time.perf_counter() - t0, 1)
+    (out / "lf.json").write_text(json.dumps(result, indent=2))
+    figure(reps, table, out / "lf.png")
+    for method in METHODS:
+        s = table[method]["slope"]
+        print(f"{method:12s} slope bias {s['bias']:+.4f}  mean sd {s['mean_sd']:.4f}  "
+              f"coverage 68% {s['coverage68']:.2f}  95% {s['coverage95']:.2f}")
+    print(f"wrote {out / 'lf.json'} and {out / 'lf.png'} in {result['seconds_total']:.0f} s")
+
+
+if __name__ == "__main__":
+    main()
