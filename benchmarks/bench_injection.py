@@ -51,7 +51,13 @@ from pathlib import Path
 
 import numpy as np
 
-from comest_bayes.recovery import RealizationTask, run_realization
+# Measure this checkout's package, not an installed copy (workers inherit sys.path from this process).
+_REPO = str(Path(__file__).resolve().parents[1])
+if _REPO not in sys.path:
+    sys.path.insert(0, _REPO)
+
+import comest_bayes  # noqa: E402
+from comest_bayes.recovery import RealizationTask, run_realization  # noqa: E402
 
 PIXEL_SCALE = 0.26  # arcsec / px
 SKY = 1000.0  # ADU
@@ -140,10 +146,12 @@ def timed_realization(task: RealizationTask):
     """run_realization plus this worker's CPU time and memory, attached as ``result.bench``."""
     t0 = time.perf_counter()
     c0 = time.process_time()
+    s0 = resource.getrusage(resource.RUSAGE_SELF).ru_stime
     result = run_realization(task)
     result.bench = {
         "pid": os.getpid(), "wall_s": time.perf_counter() - t0, "cpu_s": time.process_time() - c0,
-        "maxrss_mb": _maxrss_mb(), "rss_end_mb": _rss_now_mb(),
+        "sys_s": resource.getrusage(resource.RUSAGE_SELF).ru_stime - s0,
+        "maxrss_mb": _maxrss_mb(), "rss_end_mb": _rss_now_mb(), "package": os.path.dirname(comest_bayes.__file__),
     }
     return result
 
@@ -160,9 +168,12 @@ def _run(tmp: str, size: int, kind: str, nsims: int, workers: int, out_json: str
     sims = Path(tmp) / f"sims_w{workers}"
     rows = []
 
+    packages = set()  # where each worker imported comest_bayes from: must be this checkout
+
     def on_result(task, result):
         if result.error is not None:
             raise RuntimeError(f"realization {task.index} failed:\n{result.error}")
+        packages.add(result.bench["package"])
         tw = time.perf_counter()
         write_realization(result, sims)
         flag = np.asarray(result.truth["flag"])
@@ -173,6 +184,7 @@ def _run(tmp: str, size: int, kind: str, nsims: int, workers: int, out_json: str
             "n_detected": int(np.asarray(result.truth["detected"]).sum()), "n_detections": len(result.detections),
             **{k: round(v, 3) for k, v in result.seconds.items()}, "write": round(time.perf_counter() - tw, 3),
             "task_wall": round(result.bench["wall_s"], 3), "task_cpu": round(result.bench["cpu_s"], 3),
+            "task_sys": round(result.bench["sys_s"], 3),
             "worker_maxrss_mb": round(result.bench["maxrss_mb"], 1),
             "worker_rss_end_mb": round(result.bench["rss_end_mb"], 1),
             "main_rss_mb": round(_rss_now_mb(), 1), "load1": round(os.getloadavg()[0], 2),
@@ -187,7 +199,7 @@ def _run(tmp: str, size: int, kind: str, nsims: int, workers: int, out_json: str
     Path(out_json).write_text(json.dumps({
         "kind": kind, "workers": workers, "nsims": nsims, "wall_s": wall, "main_cpu_s": main_cpu,
         "main_maxrss_mb": _maxrss_mb(), "children_maxrss_mb": _maxrss_mb(resource.RUSAGE_CHILDREN),
-        "load_start": load_start, "load_end": load_end, "tasks": rows,
+        "load_start": load_start, "load_end": load_end, "tasks": rows, "worker_packages": sorted(packages),
     }))
 
 
@@ -247,6 +259,8 @@ def summarize(run: dict) -> dict:
         "kind": run["kind"], "workers": run["workers"], "nsims": n,
         "wall_s": round(run["wall_s"], 2), "wall_per_realization_s": round(run["wall_s"] / n, 2),
         "task_wall_mean_s": round(task_wall / n, 2), "task_cpu_mean_s": round(task_cpu / n, 2),
+        # kernel part of the CPU time (page faults into fresh full-size arrays, mostly)
+        "task_sys_mean_s": round(float(np.mean([r["task_sys"] for r in rows])), 2),
         # CPU time / wall time of the realizations: below 1 when other processes took the cores
         "task_cpu_share": round(task_cpu / task_wall, 3),
         "mean_seconds": mean,
@@ -267,6 +281,7 @@ def summarize(run: dict) -> dict:
         "main_rss_growth_mb": round(rows[-1]["main_rss_mb"] - rows[0]["main_rss_mb"], 1),
         "load_start": [round(v, 2) for v in run["load_start"]],
         "load_end": [round(v, 2) for v in run["load_end"]],
+        "worker_packages": run.get("worker_packages", []),
         "realizations": rows,
     }
 
@@ -361,6 +376,7 @@ def main(argv=None) -> int:
         "nsims": nsims, "kinds": kinds, "workers": args.workers, "cores": os.cpu_count(),
         "executor": "processes (forkserver)", "python": platform.python_version(), "numpy": np.__version__,
         "galsim": galsim.__version__, "sep": sep.__version__, "machine": platform.machine(),
+        "package": os.path.dirname(comest_bayes.__file__),
         "load_start": [round(v, 2) for v in load_start], "load_end": [round(v, 2) for v in load_end],
         "wait_load": args.wait_load, "setup": setup_info,
         "profile_headlines": {k: v.splitlines()[0] for k, v in profiles.items()}, "runs": runs,
@@ -387,6 +403,9 @@ def main(argv=None) -> int:
           "result; total MB: main + workers' peaks)")
     for kind, text in profiles.items():
         print(f"\n---- cProfile, {kind} ----\n{text}")
+    used = sorted({p for r in runs for p in r["worker_packages"]})
+    print(f"workers imported comest_bayes from {used}" + ("" if used == [info["package"]] else
+                                                          f" -- NOT only this checkout's {info['package']}"))
     print(f"written {out_path}")
     return 0
 

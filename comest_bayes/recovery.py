@@ -56,6 +56,7 @@ from astropy.table import Table, vstack
 from astropy.wcs import WCS
 
 from .config import DetectionConfig, InjectionConfig, MatchingConfig
+from .errors import InputError
 from .matching import classify_detections, match_one_to_one
 from .seeding import int_seed_for, rng_for
 
@@ -161,6 +162,14 @@ def _arrays_cached(base_key: tuple, mask_key: tuple, noise_key: tuple):
     base = fits.getdata(base_key[0]).astype(np.float32)
     mask = fits.getdata(mask_key[0]).astype(bool)
     noise = fits.getdata(noise_key[0]).astype(np.float32)
+    # Checked once per process and file: realizations add finite stamps to this base and then skip
+    # the check (detect_array(check_finite=False)), which would otherwise cost a full-image pass each.
+    if mask.shape != base.shape:
+        raise InputError(f"the mask {mask_key[0]} has shape {mask.shape} but the base image {base_key[0]} "
+                         f"{base.shape}; rerun the pipeline's stages that write them.")
+    if (~np.isfinite(base) & ~mask).any():
+        raise InputError(f"the base image {base_key[0]} holds NaN or infinite values in unmasked pixels; "
+                         f"mask them (load_image does this) and rerun the pipeline's stages that write it.")
     return base, mask, noise
 
 
@@ -192,12 +201,19 @@ def realization_file(directory, kind: str, index: int) -> Path:
 
 
 def _detect(image, mask, noise, ctx: SimContext):
-    """Re-detect with the run's detection configuration and resolved noise mode."""
+    """Re-detect with the run's detection configuration and resolved noise mode.
+
+    ``image`` is the realization's private rendered copy and is consumed: SEP
+    subtracts the background in it (``inplace=True``).  No segmentation map
+    is built, and the finiteness check was made once on the base image
+    (:func:`_arrays_cached`).  The catalog is the same as
+    :func:`~comest_bayes.detection.detect_array`'s default path gives.
+    """
     from .detection import detect_with_backend
 
     return detect_with_backend(image, mask=mask, weight_noise=noise if ctx.noise_mode == "weight" else None,
                                zeropoint=ctx.zeropoint, gain=ctx.gain, saturation=ctx.saturation, wcs=ctx.wcs,
-                               config=ctx.detection)
+                               config=ctx.detection, segmentation=False, inplace=True, check_finite=False)
 
 
 def run_realization(task: RealizationTask) -> RealizationResult:
@@ -229,20 +245,23 @@ def _run_realization(task: RealizationTask) -> RealizationResult:
                                 rng_seed=int_seed_for(ctx.root_seed, "render", kind, index), cosmos=cosmos,
                                 wcs=ctx.wcs)
     t2 = time.perf_counter()
-    det = _detect(image, mask, noise, ctx)
-    t3 = time.perf_counter()
-    if ctx.image_dir:
+    seconds = {"make": t1 - t0, "render": t2 - t1}
+    if ctx.image_dir:  # before detection, which subtracts the background in place
         from .rundir import atomic_path
 
         path = Path(ctx.image_dir) / kind / f"image_r{index:05d}.fits"
         path.parent.mkdir(parents=True, exist_ok=True)
         with atomic_path(path) as tmp:
             fits.PrimaryHDU(image).writeto(tmp)
+        seconds["image"] = time.perf_counter() - t2
+        t2 = time.perf_counter()
+    det = _detect(image, mask, noise, ctx)
+    t3 = time.perf_counter()
     del image
     truth, dets = match_realization(truth, det.catalog, _table(ctx.baseline_path), noise, ctx)
     truth["realization"] = np.full(len(truth), index, dtype=np.int32)
     dets["realization"] = np.full(len(dets), index, dtype=np.int32)
-    seconds = {"make": t1 - t0, "render": t2 - t1, "detect": t3 - t2, "match": time.perf_counter() - t3}
+    seconds.update(detect=t3 - t2, match=time.perf_counter() - t3)
     return RealizationResult(kind, index, truth, dets, seconds=seconds)
 
 

@@ -5,6 +5,7 @@ pixel integrals; Moffat: GalSim) on a flat sky with white Gaussian noise of
 known sigma, every random draw from a fixed seed (see ``conftest.py``).
 """
 
+import functools
 import math
 
 import numpy as np
@@ -580,3 +581,113 @@ def test_detect_dispatches_on_image_data(tmp_path, synthetic_fits):
     assert np.all(sep_arcsec < 0.3 * made.pixel_scale)
     with pytest.raises(ConfigError, match="detect_array runs SEP"):
         detect_array(image.data, zeropoint=ZP, config=DetectionConfig(backend="sextractor"))
+
+
+# --------------------------------------------------------------------------- fast path of the realizations
+
+
+def _crowded_masked_image(seed=12, shape=(320, 288)):
+    """Many point sources (some blended, some on the edge) with a masked block holding NaN.
+
+    Returns fresh copies of (data float32, mask, sigma map float32) on every call.
+    """
+    return tuple(a.copy() for a in _crowded_masked_image_cached(seed, shape))
+
+
+@functools.lru_cache(maxsize=1)
+def _crowded_masked_image_cached(seed, shape):
+    rng = np.random.default_rng(seed)
+    n = 160
+    xs, ys = rng.uniform(-2.0, shape[1] + 1.0, n), rng.uniform(-2.0, shape[0] + 1.0, n)
+    model = render_point_sources(shape, xs, ys, 10 ** rng.uniform(2.0, 4.5, n), fwhm=3.0, psf="moffat")
+    sigma = np.where(np.arange(shape[1])[None, :] >= shape[1] // 2, 7.0, 4.0) * np.ones((shape[0], 1))
+    data = (100.0 + model + rng.normal(0.0, 1.0, shape) * sigma).astype(np.float32)
+    mask = np.zeros(shape, bool)
+    mask[40:90, 200:260] = True
+    data[mask] = np.nan
+    return data, mask, sigma.astype(np.float32)
+
+
+@pytest.mark.parametrize("mode,masked", [("background", True), ("weight", True), ("weight", False),
+                                         ("global", True)])
+def test_fast_path_gives_the_same_catalog(mode, masked):
+    # What recovery.py runs on every realization: no segmentation map, background subtracted in the
+    # caller's array, the RMS map used as the noise map without a copy, no finiteness check. The
+    # catalog must equal the default path's (the brief asks for 1e-6 relative; the arithmetic is the
+    # same, so equality is expected and any difference means the fast path changed what SEP sees).
+    data, mask, sigma = _crowded_masked_image()
+    if not masked:  # weight mode has a separate branch when every pixel is good
+        data, mask = np.where(mask, np.float32(100.0), data), np.zeros_like(mask)
+    kw = dict(mask=mask, weight_noise=sigma if mode == "weight" else None, zeropoint=ZP, gain=2.0,
+              saturation=2.0e4, config=DetectionConfig(noise=mode, back_size=32))
+    original = data.copy()
+    ref = detect_array(data, **kw)
+    np.testing.assert_array_equal(data, original)  # the default path leaves its input alone
+    work = data.copy()
+    fast = detect_array(work, segmentation=False, inplace=True, check_finite=False, **kw)
+    assert len(ref.catalog) > 100 and np.any(ref.catalog["flags"] & FLAG_EDGE)  # premise: a varied catalog
+    assert fast.segmentation is None and ref.segmentation is not None
+    assert fast.catalog.colnames == ref.catalog.colnames and len(fast.catalog) == len(ref.catalog)
+    for name in ref.catalog.colnames:
+        a, b = np.asarray(fast.catalog[name]), np.asarray(ref.catalog[name])
+        if a.dtype.kind == "f":
+            np.testing.assert_allclose(a, b, rtol=1e-6, atol=0, equal_nan=True, err_msg=name)
+        else:
+            np.testing.assert_array_equal(a, b, err_msg=name)
+    assert fast.meta == ref.meta
+    # the work array now holds the background-subtracted image, zero on masked pixels
+    expected = np.where(mask, np.float32(0.0), original - ref.background)
+    np.testing.assert_allclose(work, expected, rtol=0, atol=1e-3)
+    np.testing.assert_array_equal(fast.noise, ref.noise)
+    if mode == "background":
+        assert fast.noise is fast.rms  # no copy
+    # the weight map handed in is never modified
+    if mode == "weight":
+        np.testing.assert_array_equal(sigma, _crowded_masked_image()[2])
+
+
+def test_fast_path_keeps_the_input_when_it_cannot_use_it():
+    # a float64 or read-only input is copied, so inplace=True never fails and never writes to it
+    data, mask, _ = _crowded_masked_image()
+    data = np.where(mask, 100.0, data)
+    ref = detect_array(data, mask=mask, zeropoint=ZP).catalog
+    as64 = data.astype(np.float64)
+    readonly = data.copy()
+    readonly.setflags(write=False)
+    for arr in (as64, readonly):
+        before = arr.copy()
+        cat = detect_array(arr, mask=mask, zeropoint=ZP, inplace=True, segmentation=False).catalog
+        np.testing.assert_array_equal(arr, before)
+        np.testing.assert_array_equal(np.asarray(cat["flux_auto"]), np.asarray(ref["flux_auto"]))
+
+
+def test_fast_path_without_the_check_trusts_the_caller_and_with_it_refuses_nan():
+    data, mask, _ = _crowded_masked_image()
+    data[5, 7] = np.nan  # unmasked
+    with pytest.raises(InputError, match="NaN or infinite values in unmasked pixels"):
+        detect_array(data.copy(), mask=mask, zeropoint=ZP, inplace=True)
+    with pytest.raises(InputError, match="mask has shape"):
+        detect_array(data, mask=mask[:-1], zeropoint=ZP)
+
+
+def test_sextractor_backend_accepts_the_fast_path_options(tmp_path):
+    # detect_with_backend passes the SEP-only options to SEP and drops them for SExtractor, which
+    # reads the image from its own file: the input is unchanged and the result the normal one.
+    from comest_bayes.detection import detect_with_backend
+    from comest_bayes.errors import BackendUnavailableError
+    from comest_bayes.sextractor import find_sextractor
+
+    try:
+        find_sextractor()
+    except BackendUnavailableError:
+        pytest.skip("the SExtractor binary is not installed (Debian package source-extractor)")
+    data, mask, _ = _crowded_masked_image()
+    data = np.where(mask, 100.0, data).astype(np.float32)
+    before = data.copy()
+    config = DetectionConfig(backend="sextractor", back_size=32)
+    fast = detect_with_backend(data, mask=mask, zeropoint=ZP, config=config, workdir=tmp_path,
+                               segmentation=False, inplace=True, check_finite=False)
+    np.testing.assert_array_equal(data, before)
+    ref = detect_with_backend(data, mask=mask, zeropoint=ZP, config=config, workdir=tmp_path)
+    assert fast.meta["backend"] == "sextractor" and len(fast.catalog) == len(ref.catalog) > 100
+    np.testing.assert_array_equal(np.asarray(fast.catalog["flux_auto"]), np.asarray(ref.catalog["flux_auto"]))

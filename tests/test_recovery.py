@@ -15,6 +15,7 @@ Three small images are used, each run once per module:
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import os
 import shutil
@@ -537,3 +538,79 @@ def test_a_new_run_in_a_recreated_directory_reads_its_own_images(tmp_path):
     # same seed, same positions and magnitudes, but 10x the noise: 2.5 mag shallower
     np.testing.assert_array_equal(noisy["mag"], quiet["mag"])
     assert noisy["detected"].sum() < quiet["detected"].sum()
+
+
+# ---------------------------------------------------------------- one realization, directly
+
+
+def _small_context(tmp_path, *, noise_mode="background", nan_at=None, mask_block=True):
+    """A SimContext on a 256^2 flat-noise base image written as the pipeline writes its inputs."""
+    from comest_bayes.config import DetectionConfig, InjectionConfig, MatchingConfig
+    from comest_bayes.detection import detect_array
+
+    shape = (256, 256)
+    rng = np.random.default_rng(31)
+    sigma = np.where(np.arange(shape[1])[None, :] < 128, SIGMA, 2 * SIGMA) * np.ones((shape[0], 1))
+    base = (SKY + rng.normal(0.0, 1.0, shape) * sigma).astype(np.float32)
+    mask = np.zeros(shape, np.uint8)
+    if mask_block:
+        mask[100:140, 30:90] = 1
+        base[mask == 1] = np.nan  # masked pixels may hold anything
+    if nan_at is not None:
+        base[nan_at] = np.nan
+    paths = {name: tmp_path / f"{name}.fits" for name in ("base", "mask", "noise", "baseline")}
+    fits.PrimaryHDU(base).writeto(paths["base"])
+    fits.PrimaryHDU(mask).writeto(paths["mask"])
+    fits.PrimaryHDU(sigma.astype(np.float32)).writeto(paths["noise"])
+    detection = DetectionConfig(back_size=32)
+    clean = np.where(mask == 1, SKY, np.nan_to_num(base, nan=SKY))
+    detect_array(clean, mask=mask.astype(bool), zeropoint=ZP, config=detection).catalog.write(paths["baseline"])
+    header = tan_header(shape, PIXEL_SCALE)
+    ctx = recovery.SimContext(
+        base_path=str(paths["base"]), mask_path=str(paths["mask"]), noise_path=str(paths["noise"]),
+        baseline_path=str(paths["baseline"]), detection_path=str(paths["baseline"]), shape=shape,
+        wcs_header=WCS(header).to_header().tostring(), zeropoint=ZP, gain=2.0, saturation=None,
+        pixel_scale=PIXEL_SCALE, fwhm=FWHM, mag_range=(18.0, 23.0), noise_mode=noise_mode, detection=detection,
+        injection=InjectionConfig(kinds=("buldisk",), density=300.0, min_sep=2.0, mag_range=(18.0, 23.0)),
+        matching=MatchingConfig(), root_seed=77)
+    return ctx, base, mask.astype(bool), sigma.astype(np.float32)
+
+
+@pytest.mark.parametrize("noise_mode", ["background", "weight"])
+def test_a_realization_detects_exactly_as_the_default_detection_path(tmp_path, noise_mode):
+    # run_realization re-detects on its private rendered copy with the fast path (no segmentation map,
+    # background subtracted in place, no per-realization finiteness check); redoing the realization by
+    # hand with the default detect_array must give the same detections.
+    from comest_bayes.detection import detect_array
+    from comest_bayes.injection import make_truth, render_truth
+    from comest_bayes.seeding import int_seed_for, rng_for
+
+    ctx, base, mask, sigma = _small_context(tmp_path, noise_mode=noise_mode)
+    ctx = dataclasses.replace(ctx, image_dir=str(tmp_path / "images"))  # injection.write_images
+    result = recovery.run_realization(recovery.RealizationTask(ctx, "buldisk", 3))
+    assert result.error is None, result.error
+    truth = make_truth("buldisk", shape=base.shape, mask=mask, pixel_scale=ctx.pixel_scale, fwhm_pix=ctx.fwhm,
+                       config=ctx.injection, mag_range=ctx.mag_range, rng=rng_for(ctx.root_seed, "inject", "buldisk", 3),
+                       wcs=ctx.wcs, zeropoint=ctx.zeropoint)
+    image, _ = render_truth(base, truth, psf=recovery._psf(ctx.injection, ctx.fwhm, ctx.pixel_scale),
+                            config=ctx.injection, pixel_scale=ctx.pixel_scale, gain=ctx.gain, zeropoint=ctx.zeropoint,
+                            rng_seed=int_seed_for(ctx.root_seed, "render", "buldisk", 3), wcs=ctx.wcs)
+    ref = detect_array(image, mask=mask, weight_noise=sigma if noise_mode == "weight" else None,
+                       zeropoint=ctx.zeropoint, gain=ctx.gain, wcs=ctx.wcs, config=ctx.detection).catalog
+    dets = result.detections
+    assert len(truth) > 60 and len(ref) > 40 and dets["matched"].sum() > 30  # premise: a real realization
+    assert len(dets) == len(ref)
+    for name in ("xwin", "ywin", "flux_auto", "mag_auto", "flux_radius", "noise", "background", "flags"):
+        np.testing.assert_allclose(np.asarray(dets[name], float), np.asarray(ref[name], float), rtol=1e-6, atol=0,
+                                   equal_nan=True, err_msg=name)
+    assert set(result.seconds) == {"make", "render", "image", "detect", "match"}
+    # the image written for the user is the rendered one, not the background-subtracted work array
+    written = fits.getdata(tmp_path / "images" / "buldisk" / "image_r00003.fits")
+    np.testing.assert_array_equal(written, image)
+
+
+def test_a_base_image_with_nan_in_unmasked_pixels_fails_the_realization_clearly(tmp_path):
+    ctx, *_ = _small_context(tmp_path, nan_at=(10, 200))
+    result = recovery.run_realization(recovery.RealizationTask(ctx, "buldisk", 0))
+    assert result.truth is None and "NaN or infinite values in unmasked pixels" in result.error
+    assert "base.fits" in result.error
