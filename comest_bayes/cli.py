@@ -7,6 +7,10 @@
 ``comest-bayes report DIR``
     Write the self-contained HTML report of a run (``DIR/report.html``); ``run``
     and ``demo`` write it at their end unless given ``--no-report``.
+``comest-bayes lf DIR [--kind K --model M --mag-range LO HI --mode joint|marginal|fixed]``
+    Fit number counts (a luminosity function) to the run's catalog or a user
+    catalog, forward-modelling the completeness posterior and the photometric
+    transfer; results under ``DIR/lf/<name>/`` and in ``summary.json``.
 
 User mistakes (a missing file, an unreadable header, a run directory holding
 another run) are printed as one ``error:`` line without a traceback and exit
@@ -123,6 +127,21 @@ def build_parser() -> argparse.ArgumentParser:
                      help="centre of the image cutouts, 0-based pixels (default the image centre)")
     rep.add_argument("--size", type=int, default=400, help="side of the image cutouts in pixels (default 400)")
     _add_output_options(rep.add_argument_group("output"))
+
+    from .lf import CLI_OPTIONS
+
+    lf = sub.add_parser("lf", help="fit number counts through the measured completeness and photometric transfer",
+                        description="Fit a count model (power law, Schechter, double power law, or a TOML spec) to the "
+                                    "run's detection catalog or a user catalog with an extended Poisson likelihood, "
+                                    "forward-modelling the completeness posterior and the magnitude transfer of the "
+                                    "injections; the completeness uncertainty is sampled jointly, marginalized over "
+                                    "posterior draws, or held fixed (for comparison). The run's report is rewritten "
+                                    "with the LF section unless --no-report.")
+    lf.add_argument("dir", help="run directory with a completeness posterior (comest-bayes run or demo)")
+    for flag, kw in CLI_OPTIONS.items():
+        lf.add_argument(flag, **kw)
+    lf.add_argument("--no-report", action="store_true", help="do not rewrite report.html")
+    _add_output_options(lf.add_argument_group("output"))
     return parser
 
 
@@ -244,6 +263,28 @@ def _cmd_report(args, log) -> int:
     return 0
 
 
+def _cmd_lf(args, log) -> int:
+    from .lf import CLI_OPTIONS, run_lf
+
+    kwargs = {kw["dest"]: getattr(args, kw["dest"]) for kw in CLI_OPTIONS.values()}
+    if kwargs.get("mag_range") is not None:
+        kwargs["mag_range"] = tuple(kwargs["mag_range"])
+    t0 = time.perf_counter()
+    result = run_lf(args.dir, log=log, **kwargs)
+    log(f"lf: {result.name} done in {time.perf_counter() - t0:.1f} s")
+    if not args.no_report:
+        from .report import write_report
+
+        try:
+            log(f"report: {write_report(args.dir, log=lambda s: None)}")
+        except Exception as exc:  # the fit is saved; a report failure must not hide it
+            if args.debug:
+                raise
+            log(f"warning: the report could not be rewritten ({type(exc).__name__}: {exc}); "
+                f"retry with: comest-bayes report {args.dir} --debug")
+    return 0
+
+
 def main(argv=None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
@@ -258,7 +299,7 @@ def main(argv=None) -> int:
 
     # Warnings (unconverged samplers, prior-dominated fits) as one readable line each.
     warnings.formatwarning = lambda message, category, *rest, **kw: f"warning: {message}\n"
-    handler = {"run": _cmd_run, "demo": _cmd_demo, "report": _cmd_report}[args.command]
+    handler = {"run": _cmd_run, "demo": _cmd_demo, "report": _cmd_report, "lf": _cmd_lf}[args.command]
     try:
         return handler(args, log)
     except ComestError as exc:

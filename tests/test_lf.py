@@ -250,6 +250,21 @@ def test_run_lf_empty_catalog_is_a_clear_error(fake_run, tmp_path):
         run_lf(fake_run, kind="point", catalog=empty)
 
 
+def test_cli_lf_fits_prints_and_refuses_bad_input_in_one_line(fake_run, capsys):
+    from comest_bayes.cli import main
+
+    assert main(["lf", str(fake_run), "--kind", "point", "--mode", "fixed", "--mag-range", "20", "23.5",
+                 "--name", "cli_fixed", "--no-report"]) == 0
+    out = capsys.readouterr().out
+    assert "slope" in out and "cli_fixed done" in out
+    entry = json.loads((fake_run / "summary.json").read_text())["lf"]["cli_fixed"]
+    assert entry["mode"] == "fixed" and entry["mag_range"] == [20.0, 23.5]
+    # a user mistake: one error line, exit status 2, no traceback
+    assert main(["lf", str(fake_run), "--model", "powerlow"]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("error:") and "powerlaw" in err and "Traceback" not in err
+
+
 # --------------------------------------------------------------------------- rendered mock
 
 
