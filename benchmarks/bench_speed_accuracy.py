@@ -1,0 +1,614 @@
+"""Speed against accuracy: what the Bayesian model buys over the binned method, at each cost.
+
+For a range of injection budgets (a few thousand to a few hundred thousand
+injections) four estimators of the completeness curve are compared:
+
+``binned``
+    the published method: 0.1-mag bins, completeness = detected / injected,
+    m50 by linear interpolation at the first crossing of 0.5 (no interval
+    for m50; Wilson intervals per bin for f);
+``map``
+    the logistic completeness model, maximum a posteriori: ``logistic`` on
+    the analytic scene (uniform depth), ``logistic_depth`` on the demo tile
+    (the model ``auto`` selects there: its depth varies);
+``laplace``
+    the same model, Gaussian approximation at the MAP (intervals from
+    draws of that Gaussian);
+``emcee``
+    the same model, emcee posterior (to an effective sample size of 1000).
+
+Two scenes:
+
+``analytic``
+    point sources with a Gaussian PSF injected on pure white Gaussian
+    noise.  The reference is exact: the closed-form detection probability of
+    :mod:`comest_bayes.analytic` (SEP's filtered-threshold semantics,
+    averaged over sub-pixel positions); the benchmark also reports the m50
+    of a very large injection pool, which checks the prediction.
+``demo``
+    the built-in demo tile (depth gradient, chip gap, real-looking galaxy
+    population); the reference is the binned curve (0.05-mag bins) of a very
+    large injection pool held out from the budgets.
+
+How a budget is measured.  One large pool of realizations is injected and
+detected once per scene by the package's own pipeline (``run_pipeline``);
+budgets are disjoint random subsets of the pool's injections, so replicates
+at one budget are independent and each costs what a run of that size costs:
+injection and detection CPU seconds per injection are measured on the pool
+(from the per-realization timings), fitting CPU seconds are measured per fit.
+
+Accuracy: the error of m50 against the reference; the RMS error of the whole
+curve f(m) over the transition (m50 - 1.5 to m50 + 1.0 mag, on a 0.02-mag
+grid); calibration, the fraction of replicates whose 68% and 95% intervals
+(m50 for laplace and emcee; for every method, f at the three probe
+magnitudes where the reference curve passes 0.9, 0.5 and 0.1) contain the
+reference.  The headline is the relative efficiency (RMSE_binned /
+RMSE_model)^2 per budget: how many times fewer injections the model needs for
+the binned method's accuracy while errors fall as N^-1/2.
+
+Outputs (``--out``, default ``benchmarks/results``): ``speed_accuracy.json``
+with every number, ``speed_accuracy.png`` with the chart.  The pools are
+kept under ``--work`` (default a temporary directory) and reused when the
+command is repeated with the same ``--work``.
+
+Run: ``python benchmarks/bench_speed_accuracy.py --work DIR`` (about 25 minutes
+on 2 cores with the defaults: 5 minutes of injection pools, 20 of fits; a
+rerun with the same ``--work`` reuses the pools); ``--quick`` for a small
+smoke run.  The largest default budget is 100,000 injections: the pools hold
+about 300,000 injections outside the held-out third, so a larger budget would
+have a single replicate and no RMSE worth the name.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import platform
+import sys
+import tempfile
+import time
+import warnings
+from pathlib import Path
+
+import numpy as np
+from astropy.io import fits
+from astropy.table import Table
+
+from comest_bayes import ratios as R
+from comest_bayes.config import load_config
+from comest_bayes.inference import fit_map, laplace, sample_posterior
+from comest_bayes.likelihood import CompletenessModel, Covariates, compress_for, covariates_from_outcomes
+from comest_bayes.modelspec import load_spec
+from comest_bayes.pipeline import ComputeOptions, ImageOptions, run_pipeline
+from comest_bayes.posterior import crossing_magnitudes
+
+HERE = Path(__file__).resolve().parent
+METHODS = ("binned", "map", "laplace", "emcee")
+BIN_WIDTH = 0.1          # the published method's bins (mag)
+REF_BIN_WIDTH = 0.05     # reference curve of the demo scene (mag)
+CURVE_WINDOW = (-1.5, 1.0)  # curve error window around the reference m50 (mag)
+GRID_STEP = 0.02
+PROBE_LEVELS = (0.9, 0.5, 0.1)   # f is checked where the reference curve passes these values
+SUMMARY_DRAWS = 1000   # posterior draws summarised per estimate
+FOOTPRINT_QUANTILES = 400   # depth quantiles of the footprint over which model curves are averaged
+
+
+# --------------------------------------------------------------------------- scenes
+
+
+def analytic_scene(work: Path, *, size: int, sigma: float, fwhm_pix: float, zeropoint: float,
+                   pixel_scale: float, seed: int) -> dict:
+    """Write a pure white-noise image with a TAN WCS; return its facts."""
+    path = work / "analytic_image.fits"
+    if not path.exists():
+        rng = np.random.default_rng(seed)
+        data = (rng.standard_normal((size, size)) * sigma).astype(np.float32)
+        h = fits.Header()
+        h["CTYPE1"], h["CTYPE2"] = "RA---TAN", "DEC--TAN"
+        h["CRPIX1"], h["CRPIX2"] = size / 2 + 0.5, size / 2 + 0.5
+        h["CRVAL1"], h["CRVAL2"] = 150.0, 2.0
+        h["CD1_1"], h["CD2_2"] = -pixel_scale / 3600.0, pixel_scale / 3600.0
+        h["CD1_2"], h["CD2_1"] = 0.0, 0.0
+        h["MAGZERO"] = zeropoint
+        tmp = path.with_name(".tmp-" + path.name)
+        fits.PrimaryHDU(data, h).writeto(tmp, overwrite=True)
+        os.replace(tmp, path)
+    return {"image": ImageOptions(path=str(path), fwhm=fwhm_pix),
+            # the injected range stays within ~1.4 mag of m50 (25.40): brighter injections would raise the
+            # background RMS each realization re-measures, hence its threshold, and move m50 off the closed form
+            "overrides": ["injection.psf=gaussian", "detection.backend=sep", "detection.thresh=5",
+                          "detection.minarea=1", "injection.mag_range=[24.0,26.8]"], "model": "logistic",
+            "facts": {"sigma": sigma, "fwhm_pix": fwhm_pix, "zeropoint": zeropoint, "pixel_scale": pixel_scale,
+                      "size": size}}
+
+
+def demo_scene(work: Path, *, size: int, seed: int) -> dict:
+    from comest_bayes.demo import MASK_GAP, make_demo_tile, write_demo_tile
+
+    d = work / "demo_tile"
+    if not (d / "done").exists():
+        d.mkdir(parents=True, exist_ok=True)
+        paths = write_demo_tile(make_demo_tile(seed=seed, size=size), d)
+        (d / "paths.json").write_text(json.dumps({k: str(v) for k, v in paths.items()}))
+        (d / "done").write_text("")
+    paths = json.loads((d / "paths.json").read_text())
+    return {"image": ImageOptions(path=paths["image"], weight=paths["weight"], mask=paths["mask"],
+                                  mask_bits=MASK_GAP),
+            "overrides": [], "model": "logistic_depth", "facts": {"size": size}}
+
+
+def build_pool(scene: dict, out: Path, *, nsims: int, density: float, seed: int, workers: int, log) -> dict:
+    """Inject and detect ``nsims`` realizations of point sources (resumable); return the pool."""
+    overrides = ["injection.kinds=point", f"injection.nsims={nsims}", f"injection.density={density}",
+                 "fit.model=none", "fit.purity_model=none", *scene["overrides"]]
+    config = load_config(overrides=overrides, seed=seed)
+    t0 = time.perf_counter()
+    run_pipeline(scene["image"], config, out, log=log,
+                 compute=ComputeOptions(executor="processes" if workers > 1 else "serial", workers=workers,
+                                        progress=False))
+    wall = time.perf_counter() - t0
+    summary = json.loads((out / "summary.json").read_text())
+    state = json.loads((out / "run.json").read_text())
+    outcomes = Table.read(out / "catalogs" / "point_outcomes.fits")
+    # wall seconds per step summed over realizations; each realization runs single-threaded in
+    # one worker, so these are its CPU seconds
+    seconds = summary["kinds"]["point"]["seconds"]
+    n_all = summary["kinds"]["point"]["counts"]["injected"]
+    per_inj = {k: float(v) / max(n_all, 1) for k, v in seconds.items()}
+    return {"outcomes": outcomes, "seconds_per_injection": per_inj, "wall": wall,
+            "mag_range": tuple(state["stages"]["baseline"]["mag_range"]), "summary": summary}
+
+
+# --------------------------------------------------------------------------- estimators
+
+
+def _grid(m50_ref: float) -> np.ndarray:
+    return np.arange(m50_ref + CURVE_WINDOW[0], m50_ref + CURVE_WINDOW[1] + 1e-9, GRID_STEP)
+
+
+def binned_estimate(mag, det, mag_range) -> dict:
+    edges = R.magnitude_edges(mag_range[0], mag_range[1], BIN_WIDTH)
+    out = {}
+    for conf, tag in ((0.6827, "68"), (0.9545, "95")):
+        br = R.binned_ratio(mag, det, edges, confidence=conf)
+        out[tag] = br
+    br = out["68"]
+    centers = 0.5 * (edges[:-1] + edges[1:])
+    return {"edges": edges, "centers": centers, "value": np.asarray(br.ratio, float), "n": np.asarray(br.n),
+            "lo68": np.asarray(out["68"].lower, float), "hi68": np.asarray(out["68"].upper, float),
+            "lo95": np.asarray(out["95"].lower, float), "hi95": np.asarray(out["95"].upper, float),
+            "m50": R.magnitude_at(br, 0.5)}
+
+
+def binned_curve(est: dict, grid: np.ndarray) -> np.ndarray:
+    """The binned curve on ``grid`` by linear interpolation between filled bin centres."""
+    ok = np.isfinite(est["value"]) & (est["n"] > 0)
+    if ok.sum() < 2:
+        return np.full(grid.shape, np.nan)
+    return np.interp(grid, est["centers"][ok], est["value"][ok])
+
+
+def _bin_of(est: dict, m: float) -> int:
+    i = int(np.searchsorted(est["edges"], m, side="right") - 1)
+    return min(max(i, 0), len(est["centers"]) - 1)
+
+
+def model_estimates(mag, det, noise, *, spec_name: str, seed: int, with_emcee: bool, wide,
+                    noise_footprint=None) -> dict:
+    """MAP, Laplace and (optionally) emcee of one model on one subset.
+
+    Every estimate refers to the same quantity as the binned method: the
+    completeness averaged over the footprint, f(m) = mean_q f(m, d_q), and
+    m50 = where that average curve crosses 0.5 (per posterior draw).  The
+    footprint is represented by ``noise_footprint``, equally spaced quantiles
+    of the noise at the pool's injected positions (what the noise map gives a
+    user); a random sample of a few hundred positions would add ~0.01 mag of
+    scatter to m50 on a tile whose depth varies.
+    Returns, per method, the draws of the average curve on ``wide`` (S, G),
+    their m50 (S,) and the CPU seconds of the fit (cumulative: Laplace
+    includes the MAP, emcee both).
+    """
+    spec = load_spec(spec_name)
+    cols = {"mag": np.asarray(mag, float), "detected": np.asarray(det)}
+    if noise is not None:
+        cols["noise"] = np.asarray(noise, float)
+    cov, outcome, meta = covariates_from_outcomes(cols, image_shape=None)
+    data = compress_for(spec, cov, outcome, meta=meta)
+    model = CompletenessModel(spec, data)
+    rng = np.random.default_rng(seed)
+    if spec.spatial == "none" or noise_footprint is None:
+        depths = cov.depth[:1]
+    else:
+        nf = np.asarray(noise_footprint, float)
+        fp, _, _ = covariates_from_outcomes({"mag": np.zeros(nf.size), "detected": np.zeros(nf.size, bool),
+                                             "noise": nf}, image_shape=None, sigma_ref=meta["sigma_ref"])
+        depths = fp.depth
+    cov_avg = Covariates.make(m=np.repeat(wide, len(depths)), depth=np.tile(depths, len(wide)))
+
+    def summarize(thetas, seconds):
+        thetas = np.atleast_2d(thetas)
+        curves = np.asarray(model.prob(thetas, cov_avg)).reshape(len(thetas), len(wide), len(depths)).mean(axis=2)
+        return {"curves": curves, "m50s": crossing_magnitudes(wide, curves, 0.5), "cpu": seconds}
+
+    res = {}
+    c0 = time.process_time()
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        mp = fit_map(model, seed=seed)
+    t_map = time.process_time() - c0
+    res["map"] = summarize(mp.theta, t_map)
+    c0 = time.process_time()
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        lap = laplace(model, mp.theta)
+    draws = rng.multivariate_normal(lap.mean, lap.cov, size=SUMMARY_DRAWS)
+    t_lap = t_map + time.process_time() - c0
+    res["laplace"] = summarize(draws, t_lap)
+    if with_emcee:
+        c0 = time.process_time()
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            post = sample_posterior(model, lap, seed=seed, min_ess=1000, max_steps=20000)
+        t_mc = t_lap + time.process_time() - c0
+        smp = post.samples
+        smp = smp[np.linspace(0, len(smp) - 1, min(SUMMARY_DRAWS, len(smp))).astype(int)]
+        res["emcee"] = summarize(smp, t_mc)
+    return res
+
+
+def probe_magnitudes(ref: dict) -> np.ndarray:
+    """Magnitudes where the reference curve first falls through each of PROBE_LEVELS."""
+    g, c = np.asarray(ref["grid"], float), np.asarray(ref["curve"], float)
+    out = []
+    for level in PROBE_LEVELS:
+        i = int(np.argmax(c < level))
+        if i == 0:
+            out.append(float(g[0]))
+            continue
+        t = (c[i - 1] - level) / (c[i - 1] - c[i])
+        out.append(float(g[i - 1] + t * (g[i] - g[i - 1])))
+    return np.asarray(out)
+
+
+def score_model(est: dict, ref: dict, wide: np.ndarray) -> dict:
+    """Errors and interval hits of one model estimate against one reference."""
+    m50_ref = ref["m50"]
+    grid = _grid(m50_ref)
+    f_ref = np.interp(grid, ref["grid"], ref["curve"])
+    probes = ref["probes"]
+    f_probe_ref = np.interp(probes, ref["grid"], ref["curve"])
+    curves, m50s = est["curves"], est["m50s"]
+    med_curve = np.median(curves, axis=0)
+    probe = np.stack([np.interp(probes, wide, c) for c in curves])
+    q = lambda a, p: np.nanquantile(a, p, axis=0)
+    out = {"m50_err": float(np.nanmedian(m50s)) - m50_ref if np.isfinite(m50s).any() else float("nan"),
+           "curve_rms": float(np.sqrt(np.mean((np.interp(grid, wide, med_curve) - f_ref) ** 2))), "cpu": est["cpu"]}
+    if len(curves) > 1:
+        for lvl, lo, hi in ((68, 0.15865, 0.84135), (95, 0.02275, 0.97725)):
+            out[f"m50_cover{lvl}"] = bool(q(m50s, lo) <= m50_ref <= q(m50s, hi))
+            out[f"f_cover{lvl}"] = list((q(probe, lo) <= f_probe_ref) & (f_probe_ref <= q(probe, hi)))
+    return out
+
+
+def score_binned(b: dict, ref: dict, cpu: float) -> dict:
+    """Errors and interval hits of the binned estimate against one reference."""
+    m50_ref = ref["m50"]
+    grid = _grid(m50_ref)
+    f_ref = np.interp(grid, ref["grid"], ref["curve"])
+    out = {"m50_err": b["m50"] - m50_ref, "curve_rms": float(np.sqrt(np.nanmean((binned_curve(b, grid) - f_ref) ** 2))),
+           "cpu": cpu, "f_cover68": [], "f_cover95": []}
+    # the bins holding the probe magnitudes, against the reference averaged over each bin
+    for pm in ref["probes"]:
+        i = _bin_of(b, pm)
+        sel = (ref["grid"] >= b["edges"][i]) & (ref["grid"] < b["edges"][i + 1])
+        fr = (float(np.mean(ref["curve"][sel])) if sel.any()
+              else float(np.interp(b["centers"][i], ref["grid"], ref["curve"])))
+        out["f_cover68"].append(bool(b["lo68"][i] <= fr <= b["hi68"][i]))
+        out["f_cover95"].append(bool(b["lo95"][i] <= fr <= b["hi95"][i]))
+    return out
+
+
+# --------------------------------------------------------------------------- references
+
+
+def analytic_reference(facts: dict, mag_range, detection, noise_sigma: float) -> dict:
+    """Exact curve of the analytic scene: the closed form of :mod:`comest_bayes.analytic`.
+
+    The closed form (peak pixel of the filtered image above DETECT_THRESH times
+    the unfiltered sigma, averaged over the sub-pixel centre) is exact for
+    MINAREA = 1 and a high threshold, which is why this scene detects with
+    DETECT_THRESH = 5, MINAREA = 1 (docs/analytic.md: within 0.01 mag of the
+    measured m50 there).  ``noise_sigma`` is the sigma the detector measured.
+    """
+    from comest_bayes import analytic
+    from comest_bayes.detection import filter_kernel
+
+    grid = np.arange(mag_range[0] - 1.0, mag_range[1] + 1.0 + 1e-9, 0.005)
+    kernel = filter_kernel(detection.filter)
+    p = analytic.detection_probability(grid, zeropoint=facts["zeropoint"], sigma=noise_sigma,
+                                       fwhm_pix=facts["fwhm_pix"], kernel=kernel, thresh=detection.thresh)
+    p = np.asarray(p, float)
+    m50 = analytic.predicted_m50(
+        lambda m: analytic.detection_probability(m, zeropoint=facts["zeropoint"], sigma=noise_sigma,
+                                                 fwhm_pix=facts["fwhm_pix"], kernel=kernel,
+                                                 thresh=detection.thresh),
+        lo=float(grid[0]), hi=float(grid[-1]))
+    return {"grid": grid, "curve": p, "m50": float(m50), "noise_sigma": noise_sigma,
+            "source": "comest_bayes.analytic.detection_probability (closed form, sub-pixel average)"}
+
+
+def pool_reference(mag, det, mag_range) -> dict:
+    edges = R.magnitude_edges(mag_range[0], mag_range[1], REF_BIN_WIDTH)
+    br = R.binned_ratio(mag, det, edges)
+    centers = 0.5 * (edges[:-1] + edges[1:])
+    ok = np.asarray(br.n) > 0
+    return {"grid": centers[ok], "curve": np.asarray(br.ratio, float)[ok], "m50": R.magnitude_at(br, 0.5),
+            "source": f"binned ratio of {len(mag)} held-out pool injections ({REF_BIN_WIDTH} mag bins)"}
+
+
+# --------------------------------------------------------------------------- the study
+
+
+def evaluate(pool: dict, refs: dict, *, spec_name: str, budgets, max_replicates: int, seed: int, emcee_max: int,
+             log, exclude: np.ndarray | None = None) -> dict:
+    """Errors, calibration and costs per reference, method and budget.
+
+    Returns ``{ref_name: {budget: {method: numbers}}}``; the fits are done
+    once per replicate and scored against every reference.
+    """
+    out = pool["outcomes"]
+    mag = np.asarray(out["mag"], float)
+    det = np.asarray(out["detected"], bool)
+    noise = np.asarray(out["noise"], float) if spec_name != "logistic" else None
+    idx = np.arange(len(mag)) if exclude is None else np.flatnonzero(~exclude)
+    idx = np.random.default_rng(seed).permutation(idx)
+    noise_fp = None
+    if noise is not None:
+        finite = noise[np.isfinite(noise) & (noise > 0)]
+        noise_fp = np.quantile(finite, (np.arange(FOOTPRINT_QUANTILES) + 0.5) / FOOTPRINT_QUANTILES)
+    for r in refs.values():
+        r["probes"] = probe_magnitudes(r)
+    m50s = [r["m50"] for r in refs.values()]
+    wide = np.arange(min(m50s) + CURVE_WINDOW[0] - 1.0, max(m50s) + CURVE_WINDOW[1] + 1.0 + 1e-9, GRID_STEP)
+    spi = pool["seconds_per_injection"]
+    inj_cost = sum(v for k, v in spi.items() if k != "detect")
+    det_cost = spi.get("detect", 0.0)
+    results = {name: {} for name in refs}
+    for budget in budgets:
+        nrep = min(max_replicates, len(idx) // budget)
+        if nrep < 1:
+            log(f"  budget {budget}: pool too small, skipped")
+            continue
+        scores = {name: {m: [] for m in METHODS} for name in refs}
+        t0 = time.perf_counter()
+        for r in range(nrep):
+            sub = idx[r * budget:(r + 1) * budget]
+            c0 = time.process_time()
+            b = binned_estimate(mag[sub], det[sub], pool["mag_range"])
+            t_b = time.process_time() - c0
+            est = model_estimates(mag[sub], det[sub], None if noise is None else noise[sub], spec_name=spec_name,
+                                  seed=seed + 1000 * r + budget, with_emcee=r < emcee_max, wide=wide,
+                                  noise_footprint=noise_fp)
+            for name, ref in refs.items():
+                scores[name]["binned"].append(score_binned(b, ref, t_b))
+                for m, e in est.items():
+                    scores[name][m].append(score_model(e, ref, wide))
+        for name in refs:
+            row = {}
+            for m, lst in scores[name].items():
+                if not lst:
+                    continue
+                err = np.array([d["m50_err"] for d in lst], float)
+                cpu_fit = float(np.mean([d["cpu"] for d in lst]))
+                frac = lambda key: _frac([d[key] for d in lst if key in d])
+                row[m] = {
+                    "replicates": int(len(err)),
+                    "m50_rmse": float(np.sqrt(np.nanmean(err ** 2))),
+                    "m50_bias": float(np.nanmean(err)),
+                    "m50_failed": int(np.sum(~np.isfinite(err))),
+                    "curve_rmse": float(np.sqrt(np.nanmean(np.square([d["curve_rms"] for d in lst])))),
+                    "cpu_inject": budget * inj_cost,
+                    "cpu_detect": budget * det_cost,
+                    "cpu_fit": cpu_fit,
+                    "cpu_total": budget * (inj_cost + det_cost) + cpu_fit,
+                    "m50_coverage68": frac("m50_cover68"),
+                    "m50_coverage95": frac("m50_cover95"),
+                    "f_coverage68": frac("f_cover68"),
+                    "f_coverage95": frac("f_cover95"),
+                }
+            results[name][str(budget)] = row
+            log(f"  budget {budget:>7d} vs {name}: {nrep} replicates ({time.perf_counter() - t0:.0f} s); m50 RMSE "
+                + ", ".join(f"{m} {row[m]['m50_rmse']:.4f}" for m in row))
+    return results
+
+
+def _fmt(v) -> str:
+    return "n/a" if v is None else f"{v:.2f}"
+
+
+def _frac(values) -> float | None:
+    a = np.asarray(values, bool).ravel()
+    return None if a.size == 0 else float(a.mean())
+
+
+def headline(results: dict) -> dict:
+    """Relative efficiency of each model estimate against the binned method, per budget.
+
+    ``efficiency = (RMSE_binned / RMSE_model)^2``.  For estimators whose error
+    falls as N^-1/2 this is how many times more injections the binned method
+    needs for the model's accuracy (equivalently, the model reaches the binned
+    method's accuracy with 1/efficiency of its injections).  Given for m50 and
+    for the whole curve.  Where an error stops falling with N (a bias floor of
+    the model's shape, or of the reference), the ratio no longer converts into
+    injections, and the JSON keeps the RMSEs to show it.
+    """
+    out = {}
+    for model in ("map", "laplace", "emcee"):
+        rows = []
+        for b in sorted(int(k) for k in results):
+            row = results[str(b)]
+            if model not in row or "binned" not in row:
+                continue
+            rb, rm = row["binned"], row[model]
+            eff = lambda key: (float((rb[key] / rm[key]) ** 2)
+                               if rm[key] and np.isfinite(rm[key]) and np.isfinite(rb[key]) else None)
+            rows.append({"budget": b, "replicates": rm["replicates"], "binned_m50_rmse": rb["m50_rmse"],
+                         "model_m50_rmse": rm["m50_rmse"], "m50_efficiency": eff("m50_rmse"),
+                         "binned_curve_rmse": rb["curve_rmse"], "model_curve_rmse": rm["curve_rmse"],
+                         "curve_efficiency": eff("curve_rmse")})
+        out[model] = rows
+    return out
+
+
+def chart(report: dict, path: Path) -> None:
+    """Three rows per scene: m50 error and curve error against CPU seconds, and interval coverage."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    import matplotlib.ticker
+
+    scenes = [s for s in ("analytic", "demo") if s in report["scenes"]]
+    fig, axes = plt.subplots(3, len(scenes), figsize=(5.6 * len(scenes), 12), squeeze=False)
+    colors = {"binned": "0.25", "map": "tab:blue", "laplace": "tab:orange", "emcee": "tab:green"}
+    markers = {"binned": "s", "map": "o", "laplace": "^", "emcee": "D"}
+    for j, scene in enumerate(scenes):
+        info = report["scenes"][scene]
+        primary = info["primary_reference"]
+        for ref_name, res in info["results"].items():
+            main_ref = ref_name == primary
+            budgets = sorted(int(b) for b in res)
+            for m in METHODS:
+                rows = [(b, res[str(b)][m]) for b in budgets if m in res[str(b)]]
+                if not rows:
+                    continue
+                bb = np.array([b for b, _ in rows])
+                get = lambda key: np.array([np.nan if r[key] is None else r[key] for _, r in rows], float)
+                cpu = get("cpu_total")
+                style = dict(color=colors[m], marker=markers[m], ms=5 if main_ref else 3)
+                if main_ref:
+                    axes[0, j].loglog(cpu, get("m50_rmse"), label=m, **style)
+                    axes[1, j].loglog(cpu, get("curve_rmse"), label=m, **style)
+                    if m != "binned":
+                        axes[2, j].semilogx(bb, get("m50_coverage68"), ls="-", label=f"{m}: m50", **style)
+                    axes[2, j].semilogx(bb, get("f_coverage68"), ls=":", mfc="none", label=f"{m}: f at 3 probes",
+                                        **style)
+                    if m == "binned":
+                        for x, y, b in zip(cpu, get("m50_rmse"), bb):
+                            axes[0, j].annotate(f"{b // 1000}k" if b >= 1000 else str(b), (x, y), fontsize=7,
+                                                xytext=(-4, -11), textcoords="offset points", color=colors[m])
+                elif m in ("binned", "emcee"):
+                    axes[0, j].loglog(cpu, get("m50_rmse"), ls="--", alpha=0.5, lw=1,
+                                      label=f"{m} vs {ref_name}", **style)
+        refs = info["references"]
+        title = (f"{scene} scene, model {info['model']}\nreference: {primary}, m50 = {refs[primary]['m50']:.3f}")
+        if len(refs) > 1:
+            other = [k for k in refs if k != primary][0]
+            title += f" ({other}: {refs[other]['m50']:.3f})"
+        axes[0, j].set_title(title, fontsize=10)
+        for row in (0, 1):
+            axes[row, j].set_xlabel("CPU seconds per estimate (injection + detection + fit)")
+        axes[0, j].set_ylabel("RMS error of m50 (mag)")
+        axes[1, j].set_ylabel("RMS error of f(m), m50-1.5 to m50+1 mag")
+        axes[2, j].axhline(0.6827, color="k", lw=0.8)
+        axes[2, j].set_ylim(0, 1.05)
+        axes[2, j].set_xlabel("injections per estimate")
+        axes[2, j].set_ylabel("coverage of the 68% intervals")
+        for ax in axes[:, j]:
+            ax.xaxis.set_major_formatter(matplotlib.ticker.FuncFormatter(lambda v, _: f"{v:g}"))
+            ax.grid(alpha=0.3, which="both")
+            ax.legend(fontsize=7)
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
+
+
+def main(argv=None) -> int:
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    p.add_argument("--scenes", default="analytic,demo")
+    p.add_argument("--budgets", default="1000,2000,5000,10000,30000,100000")
+    p.add_argument("--replicates", type=int, default=16, help="max replicates per budget (disjoint subsets)")
+    p.add_argument("--emcee-replicates", type=int, default=8, help="replicates per budget that run emcee")
+    p.add_argument("--analytic-nsims", type=int, default=200)
+    p.add_argument("--demo-nsims", type=int, default=50)
+    p.add_argument("--analytic-density", type=float, default=50.0,
+                   help="injections per arcmin^2 per realization, analytic scene")
+    p.add_argument("--demo-density", type=float, default=60.0, help="injections per arcmin^2 per realization, demo")
+    p.add_argument("--workers", type=int, default=2)
+    p.add_argument("--seed", type=int, default=11)
+    p.add_argument("--work", default=None, help="directory for the pools (kept; reused on a rerun)")
+    p.add_argument("--out", default=str(HERE / "results"))
+    p.add_argument("--quick", action="store_true", help="small smoke run")
+    a = p.parse_args(argv)
+    if a.quick:
+        a.budgets, a.replicates, a.emcee_replicates = "1000,3000", 3, 2
+        a.analytic_nsims, a.demo_nsims = 4, 4
+    budgets = [int(b) for b in a.budgets.split(",")]
+    work = Path(a.work) if a.work else Path(tempfile.mkdtemp(prefix="speed_accuracy_"))
+    work.mkdir(parents=True, exist_ok=True)
+    out = Path(a.out)
+    out.mkdir(parents=True, exist_ok=True)
+    log = lambda s: print(s, flush=True)
+    report = {"command": " ".join([Path(sys.argv[0]).name, *(argv if argv is not None else sys.argv[1:])]),
+              "machine": {"cpus": os.cpu_count(), "platform": platform.platform(), "python": platform.python_version()},
+              "methods": {"binned": f"{BIN_WIDTH} mag bins, m50 by linear interpolation at the first 0.5 crossing",
+                          "map": "logistic model (per scene), MAP", "laplace": "same model, Laplace approximation",
+                          "emcee": "same model, emcee to ESS >= 1000"},
+              "definition": "f(m) is the completeness averaged over the injected positions; m50 is where it "
+                            "crosses 0.5; model curves are averaged over 200 injected positions per draw",
+              "scenes": {}}
+    for scene in a.scenes.split(","):
+        log(f"{scene}: building the injection pool in {work / scene}")
+        if scene == "analytic":
+            sc = analytic_scene(work, size=2048, sigma=1.0, fwhm_pix=3.0, zeropoint=30.0, pixel_scale=0.2,
+                                seed=a.seed)
+            pool = build_pool(sc, work / "analytic_run", nsims=a.analytic_nsims, density=a.analytic_density,
+                              seed=a.seed, workers=a.workers, log=lambda s: None)
+        elif scene == "demo":
+            sc = demo_scene(work, size=3000, seed=a.seed)
+            pool = build_pool(sc, work / "demo_run", nsims=a.demo_nsims, density=a.demo_density, seed=a.seed,
+                              workers=a.workers, log=lambda s: None)
+        else:
+            raise SystemExit(f"unknown scene {scene!r}: use analytic and/or demo")
+        o = pool["outcomes"]
+        # a third of the realizations is held out as the empirical reference; budgets draw from the rest
+        held = np.asarray(o["realization"]) % 3 == 0
+        refs = {"held-out pool": pool_reference(np.asarray(o["mag"])[held], np.asarray(o["detected"])[held],
+                                                pool["mag_range"])}
+        primary = "held-out pool"
+        if scene == "analytic":
+            detection = load_config(overrides=sc["overrides"]).detection
+            noise_sigma = float(np.median(fits.getdata(work / "analytic_run" / "noise.fits")))
+            refs = {"closed form": analytic_reference(sc["facts"], pool["mag_range"], detection, noise_sigma),
+                    **refs}
+            primary = "closed form"
+        n = len(o)
+        log(f"{scene}: pool of {n} injections ({int(held.sum())} held out) in {pool['wall']:.0f} s wall; per "
+            "injection " + ", ".join(f"{k} {1e3 * v:.3f} ms" for k, v in pool["seconds_per_injection"].items())
+            + "; reference m50: " + ", ".join(f"{k} {r['m50']:.3f}" for k, r in refs.items()))
+        results = evaluate(pool, refs, spec_name=sc["model"], budgets=budgets, max_replicates=a.replicates,
+                           seed=a.seed, emcee_max=a.emcee_replicates, log=log, exclude=held)
+        report["scenes"][scene] = {
+            "facts": sc["facts"], "model": sc["model"], "pool_injections": n, "held_out": int(held.sum()),
+            "pool_wall_seconds": pool["wall"], "seconds_per_injection": pool["seconds_per_injection"],
+            "mag_range": list(pool["mag_range"]), "primary_reference": primary,
+            "references": {k: {**{kk: vv for kk, vv in r.items() if kk not in ("grid", "curve", "probes")},
+                               "probe_levels": list(PROBE_LEVELS), "probe_mags": [float(v) for v in r["probes"]]}
+                           for k, r in refs.items()},
+            "results": results, "headline": {k: headline(v) for k, v in results.items()}}
+    (out / "speed_accuracy.json").write_text(json.dumps(report, indent=1, default=float))
+    chart(report, out / "speed_accuracy.png")
+    log(f"wrote {out / 'speed_accuracy.json'} and {out / 'speed_accuracy.png'}")
+    for scene, s in report["scenes"].items():
+        for model, rows in s["headline"][s["primary_reference"]].items():
+            if model == "laplace":
+                continue
+            log(f"{scene} vs {s['primary_reference']}, {model}: relative efficiency (binned RMSE / model RMSE)^2 "
+                "per budget, m50 | curve: " + "; ".join(
+                    f"{r['budget']}: {_fmt(r['m50_efficiency'])} | {_fmt(r['curve_efficiency'])}" for r in rows))
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
