@@ -13,6 +13,7 @@ and the JSON-ready entry that ``summary.json`` gains under
       "parameters": {"m50_0": {"median", "lo68", "hi68"}, "w": ..., "A": ..., ...},
       "curve": {"mag": [...], "median": [...], "lo68", "hi68", "lo95", "hi95"},   # image average
       "diagnostics": {tau, ess, acceptance, nsteps, converged, warnings, ...},
+      "shape_check": {chi2, dof, p_value, max_abs_z, mag_at_max, bins: [...]},   # comest_bayes.checks
       "posterior_file": "posterior/<kind>.npz",
       "m50_map_file": "maps/<kind>_m50.fits" | null,
       "n_outcomes": N, "n_cells": G, "seconds": t
@@ -30,6 +31,7 @@ import warnings
 import numpy as np
 from astropy.table import Table
 
+from .checks import shape_check, shape_warning
 from .config import RunConfig
 from .errors import InputError
 from .inference import fit
@@ -82,6 +84,15 @@ def _json_curve(curve: dict) -> dict:
 #: A purity model needs at least this many detections of each class (real and false); with fewer,
 #: the binned purity and its binomial interval say all there is to say.
 MIN_CLASS = 25
+
+
+def _edges_of(centers, mag_range) -> np.ndarray:
+    """Bin edges from equally spaced bin centres (or the whole range for one bin)."""
+    c = np.asarray(centers, float).ravel()
+    if c.size >= 2:
+        half = 0.5 * float(c[1] - c[0])
+        return np.concatenate([c - half, [c[-1] + half]])
+    return np.asarray([float(mag_range[0]), float(mag_range[1])])
 
 
 def fit_task(task: dict) -> tuple:
@@ -184,6 +195,11 @@ def fit_kind(outcomes: Table, *, kind: str, quantity: str, requested: str, confi
         warnings.warn(w, UserWarning, stacklevel=2)
         warn.append(w)
     draws = result.draws()
+    check = shape_check(model, draws, _edges_of(mag_centers, mag_range))
+    msg = shape_warning(check, name=chosen_spec.name, kind=kind, quantity=quantity)
+    if msg:
+        warnings.warn(msg, UserWarning, stacklevel=2)
+        warn.append(msg)
     diagnostics = result.posterior.diagnostics.to_dict() if result.posterior is not None else {}
     post = CompletenessPosterior(
         spec=chosen_spec, samples=draws, names=list(model.names),
@@ -201,6 +217,7 @@ def fit_kind(outcomes: Table, *, kind: str, quantity: str, requested: str, confi
         "parameters": _param_summary(model, draws),
         "curve": _json_curve(post.curve(np.asarray(mag_centers, float))),
         "diagnostics": diagnostics,
+        "shape_check": check,
         "warnings": warn + list(diagnostics.get("warnings", [])),
         "n_outcomes": int(data.ntotal),
         "n_cells": int(data.ncells),

@@ -509,6 +509,12 @@ def _model_sections(r: _Report) -> None:
                       _num(diag.get("acceptance_mean")), _num(max(tau) if tau else None, "{:.1f}"),
                       _num(min(ess) if ess else None, "{:.0f}"), "yes" if diag.get("converged") else "NO",
                       _num(e.get("seconds"), "{:.1f}")]], numeric=(0, 1, 2, 3, 4, 5, 7))
+            check = e.get("shape_check") or {}
+            if check.get("p_value") is not None:
+                r.p(f"Shape check against the binned outcomes (comest_bayes.checks): chi2 = {check['chi2']:.1f} for "
+                    f"{check['dof']} magnitude bins, p = {check['p_value']:.2g}; largest deviation "
+                    f"{check['max_abs_z']:.1f} sigma at {check['mag_at_max']:.2f} mag. A p below 0.001 means the "
+                    "model's form, not its statistics, limits it: then trust the binned ratios.")
             for w in e.get("warnings") or []:
                 r.p(f"warning: {w}", "warn")
 
