@@ -259,16 +259,8 @@ def model_estimates(mag, det, noise, *, spec_name: str, seed: int, with_emcee: b
 
 def probe_magnitudes(ref: dict) -> np.ndarray:
     """Magnitudes where the reference curve first falls through each of PROBE_LEVELS."""
-    g, c = np.asarray(ref["grid"], float), np.asarray(ref["curve"], float)
-    out = []
-    for level in PROBE_LEVELS:
-        i = int(np.argmax(c < level))
-        if i == 0:
-            out.append(float(g[0]))
-            continue
-        t = (c[i - 1] - level) / (c[i - 1] - c[i])
-        out.append(float(g[i - 1] + t * (g[i] - g[i - 1])))
-    return np.asarray(out)
+    curve = np.asarray(ref["curve"], float)[None, :]
+    return np.array([crossing_magnitudes(np.asarray(ref["grid"], float), curve, lvl)[0] for lvl in PROBE_LEVELS])
 
 
 def score_model(est: dict, ref: dict, wide: np.ndarray) -> dict:

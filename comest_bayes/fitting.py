@@ -31,6 +31,7 @@ import warnings
 import numpy as np
 from astropy.table import Table
 
+from . import ratios as R
 from .checks import shape_check, shape_warning
 from .config import RunConfig
 from .errors import InputError
@@ -84,15 +85,6 @@ def _json_curve(curve: dict) -> dict:
 #: A purity model needs at least this many detections of each class (real and false); with fewer,
 #: the binned purity and its binomial interval say all there is to say.
 MIN_CLASS = 25
-
-
-def _edges_of(centers, mag_range) -> np.ndarray:
-    """Bin edges from equally spaced bin centres (or the whole range for one bin)."""
-    c = np.asarray(centers, float).ravel()
-    if c.size >= 2:
-        half = 0.5 * float(c[1] - c[0])
-        return np.concatenate([c - half, [c[-1] + half]])
-    return np.asarray([float(mag_range[0]), float(mag_range[1])])
 
 
 def fit_task(task: dict) -> tuple:
@@ -195,7 +187,8 @@ def fit_kind(outcomes: Table, *, kind: str, quantity: str, requested: str, confi
         warnings.warn(w, UserWarning, stacklevel=2)
         warn.append(w)
     draws = result.draws()
-    check = shape_check(model, draws, _edges_of(mag_centers, mag_range))
+    # the run's ratio bins, so the check speaks of the same bins as the binned table
+    check = shape_check(model, draws, R.magnitude_edges(mag_range[0], mag_range[1], config.ratios.mag_bin))
     msg = shape_warning(check, name=chosen_spec.name, kind=kind, quantity=quantity)
     if msg:
         warnings.warn(msg, UserWarning, stacklevel=2)
