@@ -25,7 +25,7 @@ import time
 import warnings
 from pathlib import Path
 
-from . import __version__
+from . import __version__, runtime
 from .errors import ComestError
 
 __all__ = ["main", "build_parser"]
@@ -291,6 +291,8 @@ def main(argv=None) -> int:
     if args.command is None:
         parser.print_help()
         return 2
+    # one numerical thread per process (--ncpu sets the number of processes) and the compilation cache
+    runtime.configure(threads=1)
     quiet = getattr(args, "quiet", False)
 
     def log(line: str) -> None:

@@ -387,8 +387,15 @@ class FitConfig:
     purity_model : str
         Specification of the purity model fitted to the counted detections
         (matched vs false) in measured magnitude; ``none`` to skip.
+    sampler : {"auto", "importance", "emcee"}
+        How the chosen model's posterior is drawn: ``importance`` sampling
+        from its Laplace approximation (PSIS-checked), ``emcee`` (the
+        reference), or ``auto`` (default): importance sampling, falling back
+        to emcee when its Pareto k-hat exceeds 0.7 or its effective sample
+        size is below ``min_ess``.
     min_ess : float
-        Effective sample size per parameter the emcee run continues to.
+        Effective sample size the posterior draws must reach (per parameter
+        for emcee).
     max_steps : int
         Longest emcee run (steps per walker); a shorter convergence warns.
     map_step_arcmin : float
@@ -397,12 +404,15 @@ class FitConfig:
 
     model: str = "auto"
     purity_model: str = "purity"
+    sampler: str = "auto"
     min_ess: float = 1000.0
     max_steps: int = 20000
     map_step_arcmin: float = 0.5
 
     def __post_init__(self):
         _check(bool(self.model), "fit.model", self.model, "a model name, a TOML path, 'auto' or 'none'")
+        _check(self.sampler in ("auto", "importance", "emcee"), "fit.sampler", self.sampler,
+               "auto, importance or emcee")
         _check(self.min_ess >= 10, "fit.min_ess", self.min_ess, "an effective sample size >= 10, e.g. 1000")
         _check(self.max_steps >= 100, "fit.max_steps", self.max_steps, "an integer >= 100")
         _check(self.map_step_arcmin > 0, "fit.map_step_arcmin", self.map_step_arcmin, "a positive size in arcmin")

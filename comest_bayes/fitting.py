@@ -38,18 +38,18 @@ from .errors import InputError
 from .inference import fit
 from .likelihood import CompletenessModel, compress_for, covariate_warnings, covariates_from_outcomes
 from .modelspec import load_spec, resolve_candidates
-from .posterior import CompletenessPosterior, coarse_noise_map, footprint_sample
+from .posterior import CompletenessPosterior, Footprint, average_crossings, average_prob, coarse_noise_map, footprint_sample
 from .seeding import int_seed_for, rng_for
-from .selection import select_model
+from .selection import choose_tau, select_model
 
 __all__ = ["fit_kind", "fit_task", "purity_outcomes", "MIN_OUTCOMES"]
 
 #: Fewer usable outcomes than this: the fit still runs but warns that the prior dominates.
 MIN_OUTCOMES = 20
-#: Effective sample size of the candidate fits during model selection (PSIS-LOO needs a few hundred draws).
-SELECTION_ESS = 400
-#: Posterior draws used by PSIS-LOO (its cost is draws x cells; a thousand is the usual working number).
+#: Laplace draws used by PSIS-LOO during the selection (cost: draws x cells).
 LOO_DRAWS = 1000
+#: Offset of the probe magnitudes of the targeted quantities from the data's m50 (mag).
+PROBE_OFFSET = 0.3
 
 
 def purity_outcomes(matched: Table, false: Table, mag_column: str = "mag_auto") -> Table:
@@ -85,6 +85,41 @@ def _json_curve(curve: dict) -> dict:
 #: A purity model needs at least this many detections of each class (real and false); with fewer,
 #: the binned purity and its binomial interval say all there is to say.
 MIN_CLASS = 25
+
+
+def _probe_magnitudes(m: np.ndarray, detected: np.ndarray) -> tuple[float, float]:
+    """A rough m50 of the outcomes (0.1-mag bins, first fall below half) -+ PROBE_OFFSET."""
+    lo, hi = float(np.min(m)), float(np.max(m))
+    edges = np.arange(lo, hi + 0.1, 0.1)
+    if edges.size < 3:
+        mid = 0.5 * (lo + hi)
+    else:
+        n, _ = np.histogram(m, edges)
+        k, _ = np.histogram(m[detected], edges)
+        with np.errstate(invalid="ignore", divide="ignore"):
+            frac = np.where(n > 0, k / np.maximum(n, 1), np.nan)
+        top = np.nanmax(frac) if np.isfinite(frac).any() else 1.0
+        below = np.flatnonzero(frac < 0.5 * top)
+        mid = float(0.5 * (edges[below[0]] + edges[below[0] + 1])) if below.size else 0.5 * (lo + hi)
+    return mid - PROBE_OFFSET, mid + PROBE_OFFSET
+
+
+def targeted_quantities(cells: Footprint, probes, lo: float, hi: float):
+    """The quantities the selection's adequacy check compares: ``(model, draws) -> {name: (S,)}``.
+
+    The image-average m50 and m90 (exact over the footprint) and the
+    image-average f at the two probe magnitudes.
+    """
+    def fn(model, draws):
+        cross = average_crossings(model, draws, cells, (0.5, 0.9), lo, hi)
+        f = average_prob(model, draws, np.asarray(probes, float), cells)
+        return {"m50": cross[0.5], "m90": cross[0.9], "f_bright": f[:, 0], "f_faint": f[:, 1]}
+    return fn
+
+
+def _one_bin(m: np.ndarray, edges: np.ndarray) -> bool:
+    b = np.searchsorted(edges, m, side="right")
+    return np.unique(b).size <= 1
 
 
 def fit_task(task: dict) -> tuple:
@@ -165,51 +200,79 @@ def fit_kind(outcomes: Table, *, kind: str, quantity: str, requested: str, confi
         warnings.warn(w, UserWarning, stacklevel=2)
     data = compress_for(spec, cov, outcome, meta=meta)
     seed = int_seed_for(config.seed, "fit", quantity, kind)
+    candidates = resolve_candidates(spec) if spec.is_selection else [spec]
+    smooth = any(c.uses_smooth for c in candidates)
+    # every unmasked pixel, grouped into weighted covariate cells: the exact image average
+    cells = Footprint.from_maps(noise, mask, data.meta.get("sigma_ref"), ddepth=0.02 if smooth else 0.01,
+                                nuv=8 if smooth else 1)
+    mag_lo, mag_hi = float(mag_range[0]), float(mag_range[1])
+    edges = R.magnitude_edges(mag_lo, mag_hi, config.ratios.mag_bin)
     selection = None
     if spec.is_selection:
-        candidates = resolve_candidates(spec)
-        # LOO needs far fewer draws than the final posterior: select on short runs, then run
-        # the chosen model to the full effective sample size.
-        sel = select_model(data, candidates, seed=seed, min_ess=min(SELECTION_ESS, config.fit.min_ess),
-                           max_steps=config.fit.max_steps, loo_draws=LOO_DRAWS)
+        probes = _probe_magnitudes(cov.m, outcome)
+        quantities = targeted_quantities(cells, probes, mag_lo, mag_hi)
+        sel = select_model(data, candidates, seed=seed, loo_draws=LOO_DRAWS, quantities=quantities,
+                           mag_edges=edges)
         chosen_spec = next(c for c in candidates if c.name == sel.chosen)
-        model = sel.models.get(sel.chosen) or CompletenessModel(chosen_spec, data)
-        result = sel.fits[sel.chosen]
-        if config.fit.min_ess > SELECTION_ESS:
-            result = fit(model, seed=seed, min_ess=config.fit.min_ess, max_steps=config.fit.max_steps)
+        model = sel.models[sel.chosen]
+        mp = sel.fits[sel.chosen].map
         selection = {k: v for k, v in sel.to_dict().items() if k != "diagnostics"}
-        log(f"fit: {kind} {quantity}: selected {sel.chosen} among {[c.name for c in candidates]} ({sel.rule})")
+        chosen_loo = sel.loo[sel.chosen]
+        if chosen_loo.n_bad_k:
+            warn.append(f"PSIS-LOO of the chosen model {sel.chosen}: {chosen_loo.n_bad_k} of {chosen_loo.n} "
+                        f"injections have Pareto k-hat > {chosen_loo.khat_threshold} (max {chosen_loo.khat_max:.2f}); "
+                        "its leave-one-out score is approximate (the choice between models may be affected)")
+        log(f"fit: {kind} {quantity}: selected {sel.chosen} among {[c.name for c in candidates]}")
     else:
         chosen_spec = spec
         model = CompletenessModel(spec, data)
-        result = fit(model, seed=seed, min_ess=config.fit.min_ess, max_steps=config.fit.max_steps)
+        mp = None
+        if spec.link == "spline" and spec.spline_tau == "evidence":
+            _, mp, _ = choose_tau(model, seed=seed)
+    result = fit(model, seed=seed, sampler=config.fit.sampler, min_ess=config.fit.min_ess,
+                 max_steps=config.fit.max_steps, mp=mp)
     for w in covariate_warnings(chosen_spec, data):
         warnings.warn(w, UserWarning, stacklevel=2)
         warn.append(w)
     draws = result.draws()
     # the run's ratio bins, so the check speaks of the same bins as the binned table
-    check = shape_check(model, draws, R.magnitude_edges(mag_range[0], mag_range[1], config.ratios.mag_bin))
+    check = shape_check(model, draws, edges)
     msg = shape_warning(check, name=chosen_spec.name, kind=kind, quantity=quantity)
     if msg:
         warnings.warn(msg, UserWarning, stacklevel=2)
         warn.append(msg)
     diagnostics = result.posterior.diagnostics.to_dict() if result.posterior is not None else {}
+    injected = [float(np.min(cov.m)), float(np.max(cov.m))]
     post = CompletenessPosterior(
         spec=chosen_spec, samples=draws, names=list(model.names),
         meta={"sigma_ref": data.meta.get("sigma_ref"), "hlr_ref": data.meta.get("hlr_ref"),
-              "image_shape": tuple(int(v) for v in image_shape), "mag_range": [float(v) for v in mag_range],
-              "kind": kind, "quantity": quantity},
+              "image_shape": tuple(int(v) for v in image_shape), "mag_range": [mag_lo, mag_hi],
+              "injected_range": injected, "depth_range": [float(np.min(cov.depth)), float(np.max(cov.depth))],
+              "kind": kind, "quantity": quantity, "tau": model.tau},
         noise_grid=coarse_noise_map(noise, mask), footprint=footprint_sample(mask, 2000, rng_for(seed, "footprint")),
         wcs_header=wcs_header, diagnostics={"sampler": diagnostics, "selection": selection, "warnings": warn},
+        cells=cells,
     )
+    post._model = model  # the compiled model (same parameters as the spec's own layout): no second compile
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        mags = post.summary_magnitudes()
+    for w in caught:
+        warn.append(str(w.message))
+    if check.get("dof") is not None and _one_bin(cov.m, edges):
+        text = (f"all {kind} injections lie in one {config.ratios.mag_bin}-mag bin: the shape of the {quantity} curve "
+                "(its width, m80, m90) is not constrained by the data but by the model's form and priors")
+        warnings.warn(text, UserWarning, stacklevel=2)
+        warn.append(text)
     entry = {
         "name": chosen_spec.name,
         "requested": requested,
         "selection": selection,
-        **post.summary_magnitudes(),
+        **mags,
         "parameters": _param_summary(model, draws),
         "curve": _json_curve(post.curve(np.asarray(mag_centers, float))),
         "diagnostics": diagnostics,
+        "tau": model.tau,
         "shape_check": check,
         "warnings": warn + list(diagnostics.get("warnings", [])),
         "n_outcomes": int(data.ntotal),

@@ -57,7 +57,7 @@ __all__ = [
     "SPATIAL",
 ]
 
-LINKS = ("logistic", "probit", "pritchet")
+LINKS = ("logistic", "probit", "pritchet", "richards", "spline")
 SPATIAL = ("none", "depth", "smooth", "depth+smooth")
 SMOOTH_BASES = ("poly", "bspline")
 FREE_FIXED = ("free", "fixed")
@@ -84,6 +84,8 @@ SMOOTH_ORDER_RANGE = {"poly": (1, 4), "bspline": (4, 8)}
 #: * ``beta_size``: slope of m50 on log10(hlr / hlr_ref) (galaxies).
 #: * ``smooth``: every coefficient of the smooth spatial basis (mag), shrinkage
 #:   towards a flat field.
+#: * ``log_nu``: log of the Richards shape ``nu`` (``link = "richards"``);
+#:   ``nu = 1`` is the logistic, a factor e either way at 1 sigma.
 DEFAULT_PRIORS: dict[str, dict[str, Any]] = {
     "m50_0": {"dist": "normal", "mu": 25.0, "sigma": 5.0},
     "log_w": {"dist": "normal", "mu": math.log(0.2), "sigma": 1.0},
@@ -93,7 +95,12 @@ DEFAULT_PRIORS: dict[str, dict[str, Any]] = {
     "w_depth": {"dist": "normal", "mu": 0.0, "sigma": 0.5},
     "beta_size": {"dist": "normal", "mu": 0.0, "sigma": 2.0},
     "smooth": {"dist": "normal", "mu": 0.0, "sigma": 0.3},
+    "log_nu": {"dist": "normal", "mu": 0.0, "sigma": 1.0},
 }
+
+#: Allowed number of free knots of the monotone spline (knots at t = -6, -5, ... in units of w;
+#: at least 7 so that the anchor at t = 0 has a free knot on each side).
+SPLINE_KNOTS_RANGE = (7, 40)
 
 #: Distribution family allowed for each prior key and its arguments.
 _PRIOR_FAMILY = {"A": "beta", "floor": "beta"}
@@ -142,6 +149,13 @@ class ModelSpec:
     magnitude : {"true", "measured"}
         Which magnitude is the covariate ``m``: the injected one (completeness)
         or the measured one (purity).  Default ``"true"``.
+    spline_knots : int
+        Free knots of the monotone spline (``link = "spline"``), one per unit
+        of ``t = (m - m50) / w`` from ``t = -6``; default 16 (up to ``t = 10``).
+    spline_tau : "evidence" or float
+        Smoothness scale of the spline's random walk on the knot log-rates:
+        a number, or ``"evidence"`` (default) to choose it by the Laplace
+        approximation of the marginal likelihood over a grid.
     source : str
         Path of the file the spec was read from ("" when built in Python).
     """
@@ -160,6 +174,8 @@ class ModelSpec:
     description: str = ""
     kind: str = "completeness"
     magnitude: str = "true"
+    spline_knots: int = 16
+    spline_tau: Any = "evidence"
     source: str = ""
 
     def __post_init__(self):
@@ -179,6 +195,16 @@ class ModelSpec:
         _check(self.kind in KINDS, "kind", self.kind, f"one of {list(KINDS)}")
         _check(self.magnitude in MAGNITUDES, "magnitude", self.magnitude, f"one of {list(MAGNITUDES)}")
         _check(isinstance(self.description, str), "description", self.description, "a string")
+        lo_k, hi_k = SPLINE_KNOTS_RANGE
+        _check(isinstance(self.spline_knots, int) and not isinstance(self.spline_knots, bool)
+               and lo_k <= self.spline_knots <= hi_k, "spline_knots", self.spline_knots,
+               f"an integer in [{lo_k}, {hi_k}]")
+        tau = self.spline_tau
+        if isinstance(tau, int) and not isinstance(tau, bool):
+            object.__setattr__(self, "spline_tau", float(tau))
+            tau = self.spline_tau
+        _check(tau == "evidence" or (isinstance(tau, float) and math.isfinite(tau) and tau > 0), "spline_tau",
+               tau, "\"evidence\" or a positive number")
         cands = self.candidates
         if isinstance(cands, list):
             object.__setattr__(self, "candidates", tuple(cands))
@@ -224,6 +250,8 @@ class ModelSpec:
             keys.append("w_depth")
         if self.size_covariate:
             keys.append("beta_size")
+        if self.link == "richards":
+            keys.append("log_nu")
         if self.uses_smooth:
             keys.append("smooth")
         return keys

@@ -142,7 +142,7 @@ def _weighted_sum_se(values: np.ndarray, counts: np.ndarray) -> tuple[float, flo
 
 
 def loo_grouped(model, theta_samples, *, reff: float = 1.0, max_draws: int | None = None,
-                khat_threshold: float = KHAT_THRESHOLD, warn: bool = True) -> LooResult:
+                khat_threshold: float = KHAT_THRESHOLD, warn: bool = True, log_weights=None) -> LooResult:
     """PSIS-LOO of a binomial-cell model, exact per injection (see the module docstring).
 
     Parameters
@@ -162,6 +162,14 @@ def loo_grouped(model, theta_samples, *, reff: float = 1.0, max_draws: int | Non
         k-hat above which a group's estimate is counted as unreliable.
     warn : bool, default True
         Issue a :class:`LooWarning` when any group exceeds ``khat_threshold``.
+    log_weights : array_like, shape (S,), optional
+        Log importance weights of the draws when they come from an
+        approximation ``q`` of the posterior (``log p(theta | y) - log q``,
+        any constant): the leave-one-out ratios become
+        ``w_s / p(y_i | theta_s)`` (the correction of Magnusson, Andersen,
+        Jonasson & Vehtari 2019, ICML, for draws from a Laplace or
+        variational approximation), smoothed by PSIS as usual, and the lppd
+        is weighted.  Not combined with ``max_draws``.
 
     Returns
     -------
@@ -176,6 +184,12 @@ def loo_grouped(model, theta_samples, *, reff: float = 1.0, max_draws: int | Non
     thetas = np.asarray(theta_samples, dtype=np.float64)
     if thetas.ndim != 2 or thetas.shape[1] != model.ndim:
         raise InputError(f"loo_grouped: theta_samples must have shape (S, {model.ndim}), got {thetas.shape}")
+    if log_weights is not None:
+        lw = np.asarray(log_weights, dtype=np.float64).ravel()
+        if lw.shape != (thetas.shape[0],):
+            raise InputError(f"loo_grouped: log_weights must have one entry per draw ({thetas.shape[0]}), "
+                             f"got {lw.shape}")
+        max_draws = None
     if max_draws is not None and thetas.shape[0] > max_draws:
         keep = np.unique(np.round(np.linspace(0, thetas.shape[0] - 1, int(max_draws))).astype(np.int64))
         thetas = thetas[keep]
@@ -200,11 +214,17 @@ def loo_grouped(model, theta_samples, *, reff: float = 1.0, max_draws: int | Non
                          "outcome; the model gives probability 0 to some observed outcome")
     c = counts.reshape(-1)[used].astype(np.float64)
 
-    log_w, khat = _psislw(-ll_used, reff)
+    if log_weights is None:
+        log_w, khat = _psislw(-ll_used, reff)
+        lppd_g = logsumexp(ll_used, axis=1) - math.log(s)
+    else:
+        finite = np.isfinite(lw)
+        lw = np.where(finite, lw - np.max(lw[finite]), -np.inf)
+        log_w, khat = _psislw(lw[None, :] - ll_used, reff)
+        lppd_g = logsumexp(lw[None, :] + ll_used, axis=1) - logsumexp(lw)
     log_w = np.asarray(log_w, dtype=np.float64)
     khat = np.asarray(khat, dtype=np.float64)
     elpd_g = logsumexp(log_w + ll_used, axis=1)
-    lppd_g = logsumexp(ll_used, axis=1) - math.log(s)
 
     elpd, se = _weighted_sum_se(elpd_g, c)
     lppd = float(np.sum(c * lppd_g))
@@ -225,6 +245,52 @@ def loo_grouped(model, theta_samples, *, reff: float = 1.0, max_draws: int | Non
                      khat_threshold=float(khat_threshold), n=int(c.sum()), nsamples=s, reff=float(reff),
                      elpd_groups=elpd_groups.reshape(counts.shape), khat_groups=khat_groups.reshape(counts.shape),
                      counts=counts)
+
+
+def loo_laplace(model, theta_map, cov) -> LooResult:
+    r"""Leave-one-injection-out score from the MAP and the Laplace covariance (no sampling).
+
+    Removing injection ``i`` moves the MAP by one Newton step,
+    :math:`\delta\theta_{-i} \approx -\Sigma g_i` with :math:`g_i` the
+    gradient of its log-likelihood term and :math:`\Sigma = (-H)^{-1}` the
+    Laplace covariance, so its held-out log predictive density is, to first
+    order,
+
+    .. math:: {\rm elpd}_i \approx \log p(y_i \mid \hat\theta) - g_i^{\rm T} \Sigma g_i
+
+    (the infinitesimal-jackknife or Takeuchi form of leave-one-out, equal to
+    PSIS-LOO up to terms of order 1/N; compared in the tests).  Every member
+    of a binomial cell with the same outcome has the same value, so the cost
+    is one Jacobian of the cell terms.  ``p_loo`` is the sum of the
+    leverages :math:`g_i^{\rm T} \Sigma g_i`; groups whose leverage exceeds
+    0.5 (a single injection that moves the fit by more than its own
+    information) are counted in ``n_bad_k``, the analogue of a large Pareto
+    k-hat, and ``khat_max`` holds the largest leverage.
+
+    Parameters
+    ----------
+    model : CompletenessModel
+        Needs ``cell_gradients(theta)`` and ``data``.
+    theta_map : array, shape (D,)
+    cov : array, shape (D, D)
+        Laplace covariance at the MAP.
+    """
+    grads, logs = model.cell_gradients(np.asarray(theta_map, float))
+    lev = np.einsum("gkd,de,gke->gk", grads, np.asarray(cov, float), grads)
+    n_cell = np.asarray(model.data.n, dtype=np.int64)
+    k_cell = np.asarray(model.data.k, dtype=np.int64)
+    counts = np.stack([k_cell, n_cell - k_cell], axis=1)
+    used = counts > 0
+    if not np.all(np.isfinite(logs[used])):
+        raise InputError("loo_laplace: non-finite log-likelihood of an observed outcome at the MAP")
+    elpd_groups = np.where(used, logs - lev, 0.0)
+    c = counts[used].astype(np.float64)
+    elpd, se = _weighted_sum_se(elpd_groups[used], c)
+    lppd = float(np.sum(c * logs[used]))
+    bad = used & (lev > 0.5)
+    return LooResult(elpd=elpd, se=se, p_loo=lppd - elpd, lppd=lppd, khat_max=float(np.max(lev[used])),
+                     n_bad_k=int(counts[bad].sum()), khat_threshold=0.5, n=int(c.sum()), nsamples=0, reff=1.0,
+                     elpd_groups=elpd_groups, khat_groups=np.where(used, lev, np.nan), counts=counts)
 
 
 @dataclass
@@ -338,10 +404,10 @@ def compare_loo(loos: dict, *, margin: float = 4.0, margin_se: float = 2.0) -> t
     return rows, chosen, best
 
 
-def _default_factory(spec, data):
+def _default_factory(spec, data, layout=None):
     from .likelihood import CompletenessModel
 
-    return CompletenessModel(spec, data)
+    return CompletenessModel(spec, data, layout=layout)
 
 
 def _spec_name(spec) -> str:
@@ -351,78 +417,198 @@ def _spec_name(spec) -> str:
     return name
 
 
+#: Smoothness scales tried for a spline rung (per unit of t = (m - m50) / w): from a spline that
+#: is nearly the logistic (0.02: the knot log-rates move by 2% per knot) to a free shape (2).
+TAU_GRID = (0.03, 0.1, 0.3, 1.0)
+
+#: The smoothest scale within this many nats of the best Laplace evidence is chosen.
+TAU_EVIDENCE_MARGIN = 1.0
+
+#: Importance-weighted Laplace draws per candidate for the adequacy check and the shape check.
+QUANTITY_DRAWS = 400
+
+#: A simpler candidate is adequate only when each targeted quantity (image-average m50, m90 and
+#: f at the probe magnitudes) agrees with the most flexible candidate's within this fraction of its
+#: own posterior standard deviation.
+ADEQUACY_FRACTION = 1.0 / 3.0
+
+
+def laplace_evidence(model, theta, log_prob: float) -> float:
+    """Laplace approximation of the log marginal likelihood at a MAP.
+
+    ``log p(y) ~ log p(y, theta*) + D/2 log(2 pi) - 1/2 log det(-H)``; the
+    model's log posterior includes every normalising constant of its prior
+    (so values for different smoothness scales compare).  ``-inf`` when
+    ``-H`` is not positive definite.
+    """
+    h = np.asarray(model.hessian(np.asarray(theta, float)), float)
+    sign, logdet = np.linalg.slogdet(-0.5 * (h + h.T))
+    if sign <= 0 or not np.isfinite(logdet):
+        return -math.inf
+    return float(log_prob + 0.5 * theta.size * math.log(2.0 * math.pi) - 0.5 * logdet)
+
+
+def choose_tau(model, *, seed: int, start=None, taus=TAU_GRID):
+    """Choose a spline rung's smoothness scale by the Laplace evidence over ``taus``.
+
+    The MAP is found for every scale, from the smoothest up, each warm-started
+    from the previous one; the smoothest scale whose :func:`laplace_evidence`
+    is within :data:`TAU_EVIDENCE_MARGIN` (1 nat) of the best is kept (set on
+    ``model``) with its MAP.
+
+    Returns
+    -------
+    tau : float
+    mp : MapResult
+        The MAP at the chosen scale.
+    table : list of dict
+        ``tau``, ``log_evidence``, ``log_prob`` per scale.
+    """
+    from .inference import fit_map
+
+    table, best = [], None
+    prev = start
+    for tau in taus:
+        model.tau = tau
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", InferenceWarning)
+            mp = fit_map(model, nstarts=1 if prev is not None else 2, seed=int_seed_for(seed, "tau", repr(tau)),
+                         start=prev, method="newton" if prev is not None else "L-BFGS-B")
+        ev = laplace_evidence(model, mp.theta, mp.log_prob)
+        table.append({"tau": float(tau), "log_evidence": ev, "log_prob": float(mp.log_prob), "mp": mp})
+        prev = mp.theta
+    # the smoothest scale whose evidence is within TAU_EVIDENCE_MARGIN nats of the best: the evidence
+    # is flat across scales the data cannot tell apart, and the smoother spline is the simpler model
+    top = max(row["log_evidence"] for row in table)
+    pick = next(row for row in table if row["log_evidence"] >= top - TAU_EVIDENCE_MARGIN)
+    model.tau = pick["tau"]
+    mp = pick["mp"]
+    for row in table:
+        row.pop("mp")
+    return float(model.tau), mp, table
+
+
+def _resample(draws: np.ndarray, log_weights: np.ndarray, n: int, rng) -> np.ndarray:
+    """``n`` equal-weight draws by systematic resampling of weighted ``draws``."""
+    lw = np.where(np.isfinite(log_weights), log_weights, -np.inf)
+    w = np.exp(lw - np.max(lw))
+    w /= w.sum()
+    u = (rng.random() + np.arange(n)) / n
+    return draws[np.minimum(np.searchsorted(np.cumsum(w), u), len(w) - 1)]
+
+
+def _laplace_draws(model, lap, *, seed: int, ndraws: int):
+    """Draws from the Laplace Gaussian and their log importance weights (posterior over Gaussian)."""
+    from .seeding import rng_for
+
+    rng = rng_for(seed, "laplace-draws")
+    chol = np.linalg.cholesky(lap.cov)
+    z = rng.standard_normal((ndraws, lap.mean.size))
+    draws = lap.mean + z @ chol.T
+    log_q = -0.5 * np.sum(z * z, axis=1)
+    log_p = np.asarray(model.log_prob_batch(draws), float)
+    lw = np.where(np.isfinite(log_p), log_p - log_q, -np.inf)
+    return draws, lw, rng
+
+
+def _weighted_moments(values: np.ndarray) -> tuple[float, float]:
+    ok = np.isfinite(values)
+    if ok.mean() < 0.5:
+        return math.nan, math.nan
+    return float(np.mean(values[ok])), float(np.std(values[ok]))
+
+
 def select_model(data, candidates, *, seed: int, margin: float = 4.0, margin_se: float = 2.0,
                  min_ess: float = 400, max_steps: int = 20000, chunk: int = 500, nwalkers: int | None = None,
-                 nstarts: int = 4, moves="de", loo_draws: int | None = 4000, model_factory=None,
-                 progress: bool = False) -> SelectionResult:
-    r"""Fit candidate models (simplest first) and keep the simplest one as good as the best.
+                 nstarts: int = 2, moves="de", loo_draws: int | None = 1000, model_factory=None,
+                 progress: bool = False, scoring: str = "laplace", quantities=None, mag_edges=None,
+                 adequacy_fraction: float = ADEQUACY_FRACTION) -> SelectionResult:
+    r"""Fit candidate models (simplest first) and keep the simplest adequate one as good as the best.
 
-    Every candidate is fitted by :func:`comest_bayes.inference.fit` (MAP,
-    Laplace, emcee) and scored by :func:`loo_grouped`.  With ``best`` the
-    candidate of highest ``elpd_loo``, each candidate ``c`` gets
+    **Scoring** (``scoring="laplace"``, the default): every candidate gets a
+    MAP (warm-started from the previous rung's, all rungs sharing one compiled
+    likelihood when their specs allow it) and the Laplace approximation;
+    spline rungs with ``spline_tau = "evidence"`` first choose their
+    smoothness by :func:`choose_tau`.  ``loo_draws`` draws from the Laplace
+    Gaussian, importance-weighted to the posterior, give PSIS-LOO
+    (:func:`loo_grouped` with ``log_weights``).  No MCMC runs here: the
+    caller samples only the chosen model.  ``scoring="emcee"`` fits every
+    candidate with emcee and scores its draws (the earlier, slower reference).
 
-    * :math:`\Delta_c = {\rm elpd}_c - {\rm elpd}_{\rm best} \le 0`;
-    * :math:`{\rm SE}_\Delta = \sqrt{N\,{\rm Var}_i(e_{c,i} - e_{{\rm best},i})}`
-      from the *paired* per-injection differences (the data are the same for
-      all candidates, so most of the scatter of the individual ``elpd_i``
-      cancels).
+    **Adequacy**: with ``quantities`` (a callable ``(model, draws) -> {name:
+    (S,) values}``, e.g. the image-average m50, m90 and f at probe magnitudes)
+    every candidate's posterior mean and sd of each quantity are compared with
+    the most flexible candidate's (the last one): a candidate is *adequate*
+    when every quantity agrees within ``adequacy_fraction`` (1/3) of the
+    candidate's own posterior sd, and (with ``mag_edges``) its shape check
+    (:func:`comest_bayes.checks.shape_check`) has ``p >= P_WARN``.  A simpler
+    model that is biased by a third of its sd or more relative to a model
+    that can follow any monotone transition is therefore never chosen: its
+    intervals would not cover.  The most flexible candidate is adequate by
+    definition.
 
-    **Rule**: choose the first candidate (in the given, simplest-first order)
-    with
+    **Rule**: choose the first (simplest) candidate that is adequate and has
 
-    .. math:: \Delta_c \ge -\max({\rm margin},\ {\rm margin\_se}\cdot{\rm SE}_\Delta),
+    .. math:: \Delta_c \ge -\max({
+m margin},\ {
+m margin\_se}\cdot{
+m SE}_\Delta),
 
-    by default :math:`\Delta_c \ge -\max(4, 2\,{\rm SE}_\Delta)` nats.
+    with :math:`\Delta_c = {
+m elpd}_c - {
+m elpd}_{
+m best}` and the
+    paired SE of the per-injection differences (default
+    :math:`-\max(4, 2\,{
+m SE}_\Delta)` nats).  If no adequate candidate is
+    within the margin, the adequate one of highest elpd is chosen.
 
-    Why: a LOO difference is itself an estimate with sampling error.  A
-    difference within about two standard errors is not distinguishable from
-    zero, and below about 4 nats the standard error is itself unreliable
-    (the normal approximation to the difference is poorly calibrated for
-    small differences; Sivula, Magnusson, Matamoros & Vehtari 2020,
-    arXiv:2008.10296, and the LOO FAQ of Vehtari).  A more complex model
-    is therefore taken only when it beats every simpler one by a margin that
-    is resolvable by both criteria; otherwise the simpler one wins, which
-    keeps the parameter count (and the extrapolation risk of spatial terms)
-    down.  The best model always satisfies the rule, so a choice always exists.
+    Why the margin: a LOO difference is itself an estimate; within about two
+    standard errors, or below about 4 nats, it is not resolvable (Sivula,
+    Magnusson, Matamoros & Vehtari 2020, arXiv:2008.10296).
 
     Parameters
     ----------
     data : BinomialData
-        Compressed outcomes resolving every covariate used by any candidate
-        (e.g. from ``compress_for(candidates, ...)``); the same cells are used
-        for every candidate, which makes the paired differences valid.
+        Compressed outcomes resolving every covariate used by any candidate.
     candidates : sequence of ModelSpec or str, or a selection spec
-        Simplest first; strings are loaded with
-        :func:`comest_bayes.modelspec.load_spec`.  Names must be unique.  A
-        single selection spec (or its name, e.g. ``"auto"``) stands for its
-        candidates (:func:`comest_bayes.modelspec.resolve_candidates`).
+        Simplest first (the last is the most flexible).
     seed : int
-        Root seed; candidate ``name`` is fitted with ``int_seed_for(seed,
-        "select", name)``.
-    margin : float, default 4.0
-        Nats of elpd always considered unresolvable.
-    margin_se : float, default 2.0
-        Multiple of the paired SE considered unresolvable.
-    min_ess : float, default 400
-        ESS target of the sampler (lower than the final fit's 1000: LOO needs
-        fewer effective draws than tail quantiles).
-    max_steps, chunk, nwalkers, moves, progress
-        Passed to :func:`comest_bayes.inference.sample_posterior`.
-    nstarts : int, default 4
-        MAP starts per candidate.
-    loo_draws : int or None, default 4000
-        Posterior draws used by PSIS-LOO (evenly thinned; None = all).
+        Root seed; candidate ``name`` uses ``int_seed_for(seed, "select", name)``.
+    margin, margin_se : float
+        The LOO rule.
+    min_ess, max_steps, chunk, nwalkers, moves, progress
+        emcee settings (``scoring="emcee"`` only).
+    nstarts : int, default 2
+        MAP starts per candidate (besides the warm start).
+    loo_draws : int, default 1000
+        Laplace draws for PSIS-LOO (or emcee draws used, for ``"emcee"``).
     model_factory : callable, optional
-        ``model_factory(spec, data) -> model``; default
-        :class:`comest_bayes.likelihood.CompletenessModel`.
+        ``model_factory(spec, data) -> model`` (or ``(spec, data, layout)``);
+        default :class:`comest_bayes.likelihood.CompletenessModel` on the
+        candidates' shared layout.
+    quantities : callable, optional
+        See *Adequacy*.
+    mag_edges : array, optional
+        Magnitude bins of the shape check.
+    adequacy_fraction : float
+        See *Adequacy*.
 
     Returns
     -------
     SelectionResult
+        ``table`` rows gain ``adequate``, ``quantities`` (mean, sd and the
+        difference to the most flexible candidate in units of the sd),
+        ``shape_p`` and, for spline rungs, ``tau``; ``fits`` hold MAP and
+        Laplace results (``posterior`` None with Laplace scoring).
     """
+    from .inference import fit_map, laplace
+
     t0 = time.perf_counter()
     if margin < 0 or margin_se < 0:
         raise InputError(f"select_model: margin and margin_se must be >= 0, got {margin} and {margin_se}")
+    if scoring not in ("laplace", "emcee"):
+        raise InputError(f"select_model: scoring must be 'laplace' or 'emcee', got {scoring!r}")
     if isinstance(candidates, str) or getattr(candidates, "is_selection", False):
         from .modelspec import resolve_candidates
 
@@ -437,29 +623,109 @@ def select_model(data, candidates, *, seed: int, margin: float = 4.0, margin_se:
     names = [_spec_name(c) for c in candidates]
     if len(set(names)) != len(names):
         raise InputError(f"select_model: candidate names must be unique, got {names}")
-    factory = _default_factory if model_factory is None else model_factory
+    if model_factory is None:
+        from .errors import ConfigError
+        from .likelihood import shared_layout
 
-    fits, loos, models, seconds = {}, {}, {}, {}
+        try:
+            layout = shared_layout(candidates)
+        except (ConfigError, AttributeError, TypeError):
+            layout = None
+
+        def factory(spec, d):
+            return _default_factory(spec, d, layout)
+    else:
+        factory = model_factory
+
+    fits, loos, models, seconds, extra = {}, {}, {}, {}, {}
+    prev = None
     for spec, name in zip(candidates, names):
         t1 = time.perf_counter()
         model = factory(spec, data)
-        result: FitResult = fit(model, seed=int_seed_for(seed, "select", name), sample=True, nstarts=nstarts,
-                                min_ess=min_ess, max_steps=max_steps, chunk=chunk, nwalkers=nwalkers,
-                                progress=progress, moves=moves)
-        draws = result.posterior.samples
-        s_used = draws.shape[0] if loo_draws is None else min(draws.shape[0], int(loo_draws))
-        mean_ess = float(np.mean(result.posterior.diagnostics.ess))
-        reff = min(1.0, mean_ess / s_used) if math.isfinite(mean_ess) and mean_ess > 0 else 1.0
-        loos[name] = loo_grouped(model, draws, reff=reff, max_draws=loo_draws)
-        fits[name], models[name] = result, model
-        seconds[name] = time.perf_counter() - t1
+        cseed = int_seed_for(seed, "select", name)
+        info = {}
+        if scoring == "emcee":
+            result: FitResult = fit(model, seed=cseed, sample=True, nstarts=nstarts + 2, min_ess=min_ess,
+                                    max_steps=max_steps, chunk=chunk, nwalkers=nwalkers, progress=progress,
+                                    moves=moves)
+            draws = result.posterior.samples
+            s_used = draws.shape[0] if loo_draws is None else min(draws.shape[0], int(loo_draws))
+            mean_ess = float(np.mean(result.posterior.diagnostics.ess))
+            reff = min(1.0, mean_ess / s_used) if math.isfinite(mean_ess) and mean_ess > 0 else 1.0
+            loos[name] = loo_grouped(model, draws, reff=reff, max_draws=loo_draws)
+            eq_draws = draws[np.linspace(0, len(draws) - 1, min(len(draws), 400)).astype(int)]
+        else:
+            start = model.warm_start(*prev) if prev is not None and hasattr(model, "warm_start") else None
+            if getattr(spec, "link", None) == "spline" and getattr(spec, "spline_tau", None) == "evidence":
+                tau, mp, tau_table = choose_tau(model, seed=cseed, start=start)
+                info["tau"] = tau
+                info["tau_table"] = tau_table
+            else:
+                mp = fit_map(model, nstarts=nstarts, seed=cseed, start=start)
+            lap = laplace(model, mp.theta)
+            result = FitResult(map=mp, laplace=lap, posterior=None, seconds=0.0)
+            loos[name] = loo_laplace(model, mp.theta, lap.cov)
+            draws, lw, rng = _laplace_draws(model, lap, seed=cseed, ndraws=QUANTITY_DRAWS)
+            eq_draws = _resample(draws, lw, QUANTITY_DRAWS, rng)
+            prev = (list(model.names), mp.theta)
+        if quantities is not None:
+            info["q_draws"] = quantities(model, eq_draws)
+        if mag_edges is not None:
+            from .checks import shape_check
 
-    rows, chosen, best = compare_loo(loos, margin=margin, margin_se=margin_se)
-    rows = [{"name": r["name"], "nparams": int(models[r["name"]].ndim),
-             **{k: v for k, v in r.items() if k != "name"}, "seconds": float(seconds[r["name"]])} for r in rows]
-    crow = next(r for r in rows if r["chosen"])
-    rule = (f"simplest candidate with delta_elpd >= -max({margin:g}, {margin_se:g} * se_delta) nats relative to "
-            f"the best ({best}); chosen {chosen}: delta_elpd = {crow['delta_elpd']:.2f}, "
-            f"se_delta = {crow['se_delta']:.2f}")
-    return SelectionResult(table=rows, chosen=chosen, best=best, rule=rule, fits=fits, loo=loos, models=models,
+            info["shape"] = shape_check(model, eq_draws, mag_edges)
+        fits[name], models[name] = result, model
+        result.seconds = time.perf_counter() - t1
+        seconds[name] = result.seconds
+        extra[name] = info
+
+    rows, _, best = compare_loo(loos, margin=margin, margin_se=margin_se)
+    top = names[-1]
+    adequacy = {}
+    from .checks import P_WARN
+
+    for name in names:
+        info = extra[name]
+        ok = True
+        qsum = {}
+        if "q_draws" in info:
+            for qname, values in info["q_draws"].items():
+                mean, sd = _weighted_moments(np.asarray(values, float))
+                ref, _ = _weighted_moments(np.asarray(extra[top]["q_draws"][qname], float))
+                z = abs(mean - ref) / sd if sd > 0 and math.isfinite(mean) and math.isfinite(ref) else math.nan
+                qsum[qname] = {"mean": mean, "sd": sd, "diff_over_sd": z}
+                if name != top and not (z <= adequacy_fraction):
+                    ok = False
+        p_shape = (info.get("shape") or {}).get("p_value")
+        if name != top and p_shape is not None and p_shape < P_WARN:
+            ok = False
+        adequacy[name] = (ok, qsum, p_shape)
+
+    chosen = None
+    for r in rows:
+        if adequacy[r["name"]][0] and r["delta_elpd"] >= -max(margin, margin_se * r["se_delta"]):
+            chosen = r["name"]
+            break
+    how = "simplest adequate candidate within the LOO margin"
+    if chosen is None:
+        ok_rows = [r for r in rows if adequacy[r["name"]][0]]
+        chosen = max(ok_rows, key=lambda r: r["elpd_loo"])["name"]
+        how = "no adequate candidate within the LOO margin: the adequate one of highest elpd"
+    table = []
+    for r in rows:
+        name = r["name"]
+        ok, qsum, p_shape = adequacy[name]
+        row = {"name": name, "nparams": int(models[name].ndim), **{k: v for k, v in r.items() if k != "name"},
+               "adequate": bool(ok), "shape_p": p_shape, "quantities": qsum, "seconds": float(seconds[name])}
+        row["chosen"] = name == chosen
+        if "tau" in extra[name]:
+            row["tau"] = extra[name]["tau"]
+            row["tau_table"] = extra[name]["tau_table"]
+        table.append(row)
+    crow = next(r for r in table if r["chosen"])
+    rule = (f"{how}: adequate = every targeted quantity within {adequacy_fraction:.2g} of its posterior sd of "
+            f"the most flexible candidate ({top}) and shape-check p >= {P_WARN:g}; LOO margin delta_elpd >= "
+            f"-max({margin:g}, {margin_se:g} * se_delta) relative to the best ({best}); chosen {chosen}: "
+            f"delta_elpd = {crow['delta_elpd']:.2f}, se_delta = {crow['se_delta']:.2f}")
+    return SelectionResult(table=table, chosen=chosen, best=best, rule=rule, fits=fits, loo=loos, models=models,
                            seconds=time.perf_counter() - t0)

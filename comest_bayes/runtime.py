@@ -1,0 +1,70 @@
+"""Process-wide settings of the numerical runtime (JAX/XLA threads, compilation cache).
+
+The command line calls :func:`configure` once, before any JAX computation, and
+the worker processes inherit its environment.  Python users who import the
+package are not affected unless they call it.
+
+* **Threads.**  XLA's CPU backend and the BLAS start thread pools sized to the
+  machine.  With ``threads=1`` (what ``--ncpu`` grants each fit worker) the
+  XLA flags ``--xla_cpu_multi_thread_eigen=false
+  intra_op_parallelism_threads=1`` and ``OMP_NUM_THREADS`` /
+  ``OPENBLAS_NUM_THREADS`` / ``MKL_NUM_THREADS`` = 1 keep each process on its
+  core, so ``--ncpu N`` means N busy cores.  These take effect only before the
+  first JAX computation of the process.
+* **Compilation cache.**  Every model layout compiles its likelihood once per
+  padded data size; JAX's persistent compilation cache keeps the compiled
+  code on disk (``$COMEST_BAYES_CACHE``, default
+  ``~/.cache/comest-bayes/jax``), so later runs and worker processes load it
+  instead of compiling again.  It only ever holds compiled code of this
+  package's own functions; deleting it costs one compile the next time.
+"""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+__all__ = ["configure", "cache_dir"]
+
+_THREAD_VARS = ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS")
+_XLA_ONE_THREAD = "--xla_cpu_multi_thread_eigen=false intra_op_parallelism_threads=1"
+
+
+def cache_dir() -> Path:
+    """Folder of the persistent JAX compilation cache."""
+    env = os.environ.get("COMEST_BAYES_CACHE")
+    return Path(env) if env else Path.home() / ".cache" / "comest-bayes" / "jax"
+
+
+def configure(threads: int | None = 1, *, cache: bool = True) -> None:
+    """Limit the numerical threads of this process (and its future children) and enable the cache.
+
+    Parameters
+    ----------
+    threads : int or None
+        1 pins XLA and BLAS to one thread per process; None leaves them alone.
+    cache : bool
+        Use the persistent compilation cache (:func:`cache_dir`); silently
+        skipped when the folder cannot be created (a read-only home).
+    """
+    if threads == 1:
+        flags = os.environ.get("XLA_FLAGS", "")
+        if "intra_op_parallelism_threads" not in flags:
+            os.environ["XLA_FLAGS"] = (flags + " " + _XLA_ONE_THREAD).strip()
+        for var in _THREAD_VARS:
+            os.environ.setdefault(var, "1")
+    if cache:
+        path = cache_dir()
+        try:
+            path.mkdir(parents=True, exist_ok=True)
+        except OSError:
+            return
+        os.environ.setdefault("JAX_COMPILATION_CACHE_DIR", str(path))
+        os.environ.setdefault("JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS", "0.2")
+        import sys
+
+        if "jax" in sys.modules:  # already imported: set the options directly
+            import jax
+
+            jax.config.update("jax_compilation_cache_dir", str(path))
+            jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.2)
