@@ -116,8 +116,9 @@ def _num(v):
 def run_replicate(task: dict) -> dict:
     """Draw, fit and measure one replicate (the worker entry point; picklable task in, JSON-ready dict out)."""
     # single-threaded numerics, set before jax (or a BLAS) is first imported in this process
-    os.environ["XLA_FLAGS"] = XLA_FLAGS
-    os.environ["OMP_NUM_THREADS"] = "1"
+    from comest_bayes import runtime
+
+    runtime.configure(threads=1)  # one XLA/BLAS thread and the compilation cache, before the first jax use
     import inspect
     import warnings
 

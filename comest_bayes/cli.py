@@ -142,6 +142,27 @@ def build_parser() -> argparse.ArgumentParser:
         lf.add_argument(flag, **kw)
     lf.add_argument("--no-report", action="store_true", help="do not rewrite report.html")
     _add_output_options(lf.add_argument_group("output"))
+
+    fit = sub.add_parser("fit", help="fit the completeness model to an outcome table from any injection pipeline",
+                         description="Run the model selection and posterior of comest-bayes on a table of injection "
+                                     "outcomes made elsewhere (Balrog, LSST source_injection, an earlier run): one row "
+                                     "per injection with its true magnitude and whether it was detected, optionally "
+                                     "its pixel position and the local detection noise. Writes the posterior, "
+                                     "summary.json and a figure to --out.")
+    fit.add_argument("outcomes", help="outcome table (FITS, or any format astropy reads)")
+    fit.add_argument("--out", required=True, help="output folder (new or empty)")
+    fit.add_argument("--kind", default="injections", help="label of the injected population (default injections)")
+    fit.add_argument("--model", default="auto", help="model spec name or TOML path, or auto (default)")
+    for name, default in (("mag", "mag"), ("detected", "detected"), ("x", "x"), ("y", "y"), ("noise", "noise")):
+        fit.add_argument(f"--{name}-column", default=default, metavar="NAME",
+                         help=f"column of the {name} (default {default})")
+    fit.add_argument("--noise-map", default=None, metavar="FITS",
+                     help="detection noise map of the image: the image average then covers every unmasked pixel")
+    fit.add_argument("--mask", default=None, metavar="FITS", help="bad-pixel mask of the image (non-zero = bad)")
+    fit.add_argument("--image-shape", default=None, metavar="NY,NX",
+                     help="image shape in pixels, when the table has positions but no map is given")
+    fit.add_argument("--seed", type=int, default=0, help="root seed of the fit (default 0)")
+    _add_output_options(fit.add_argument_group("output"))
     return parser
 
 
@@ -174,6 +195,28 @@ def _compute_from_args(args):
     executor = "dask" if args.scheduler else args.executor
     return ComputeOptions(executor=executor, workers=workers, scheduler=args.scheduler,
                           progress=not args.quiet and sys.stderr.isatty())
+
+
+def _cmd_fit(args, log) -> int:
+    from .fitting import fit_outcome_file
+
+    shape = None
+    if args.image_shape:
+        try:
+            shape = tuple(int(v) for v in args.image_shape.split(","))
+            assert len(shape) == 2 and min(shape) >= 2
+        except (ValueError, AssertionError):
+            raise ComestError(f"--image-shape must be NY,NX (two integers >= 2), got {args.image_shape!r}.") from None
+    columns = {name: getattr(args, f"{name}_column") for name in ("mag", "detected", "x", "y", "noise")}
+    summary = fit_outcome_file(args.outcomes, args.out, kind=args.kind, model=args.model, columns=columns,
+                               noise_map=args.noise_map, mask=args.mask, image_shape=shape, seed=args.seed, log=log)
+    entry = summary["kinds"][args.kind]["model"]
+    m50 = entry.get("m50") or {}
+    if m50.get("median") is not None:
+        log(f"{args.kind}: {entry['name']}: m50 = {m50['median']:.3f} [68%: {m50['lo68']:.3f}, {m50['hi68']:.3f}]"
+            + (" (extrapolated)" if m50.get("extrapolated") else ""))
+    log(f"wrote {args.out}/summary.json, posterior/{args.kind}_completeness.npz, figures/{args.kind}_completeness.png")
+    return 0
 
 
 def _cmd_run(args, log) -> int:
@@ -301,7 +344,7 @@ def main(argv=None) -> int:
 
     # Warnings (unconverged samplers, prior-dominated fits) as one readable line each.
     warnings.formatwarning = lambda message, category, *rest, **kw: f"warning: {message}\n"
-    handler = {"run": _cmd_run, "demo": _cmd_demo, "report": _cmd_report, "lf": _cmd_lf}[args.command]
+    handler = {"run": _cmd_run, "demo": _cmd_demo, "report": _cmd_report, "lf": _cmd_lf, "fit": _cmd_fit}[args.command]
     try:
         return handler(args, log)
     except ComestError as exc:

@@ -25,6 +25,7 @@ magnitudes" are where purity falls to 50/80/90%.
 
 from __future__ import annotations
 
+import math
 import time
 import warnings
 
@@ -280,3 +281,176 @@ def fit_kind(outcomes: Table, *, kind: str, quantity: str, requested: str, confi
         "seconds": round(time.perf_counter() - t0, 2),
     }
     return post, entry
+
+
+# --------------------------------------------------------------------------- outcomes from elsewhere
+
+#: Default column names of an outcome table (this package's own ``catalogs/<kind>_outcomes.fits``).
+OUTCOME_COLUMNS = {"mag": "mag", "detected": "detected", "x": "x", "y": "y", "noise": "noise"}
+
+
+def _read_map(path, name: str) -> np.ndarray:
+    from astropy.io import fits
+
+    try:
+        with fits.open(path) as hdul:
+            for hdu in hdul:
+                if hdu.data is not None and getattr(hdu.data, "ndim", 0) == 2:
+                    return np.asarray(hdu.data)
+    except (OSError, ValueError, TypeError) as exc:
+        raise InputError(f"{name} {str(path)!r} cannot be read as FITS: {exc}") from None
+    raise InputError(f"{name} {str(path)!r} holds no 2-D image HDU.")
+
+
+def fit_outcome_file(path, out, *, kind: str = "injections", model: str = "auto", columns: dict | None = None,
+                     noise_map=None, mask=None, image_shape=None, seed: int = 0, mag_bin: float = 0.1,
+                     log=lambda s: None) -> dict:
+    """Fit the completeness model to an outcome table made by any injection pipeline.
+
+    Parameters
+    ----------
+    path : str or Path
+        FITS (or any format astropy's Table reads) with one row per
+        injection: true magnitude, detected (bool or 0/1) and optionally
+        pixel position and the local detection noise.
+    out : str or Path
+        Output folder: new or empty.  Receives ``posterior/<kind>_completeness.npz``,
+        ``summary.json`` (``kinds.<kind>.model`` and the binned completeness)
+        and ``figures/<kind>_completeness.png``.
+    kind : str
+        Label of the injected population.
+    model : str
+        A spec name or path, or ``auto`` (the selection).
+    columns : dict, optional
+        Column names for ``mag``, ``detected``, ``x``, ``y``, ``noise``
+        (defaults :data:`OUTCOME_COLUMNS`); ``x``, ``y`` and ``noise`` may be
+        absent from the table.
+    noise_map, mask : str or Path, optional
+        FITS maps of the detection noise and bad pixels (non-zero = bad) of
+        the image: the image average then runs over every unmasked pixel.
+        Without them it runs over the injections' own positions and noise
+        values (the footprint as the injections sampled it).
+    image_shape : (ny, nx), optional
+        Needed with positions but without a noise map or mask (default:
+        from the maps, else the largest position + 1).
+    seed : int
+        Root seed of the fit.
+
+    Returns
+    -------
+    dict
+        The summary written to ``summary.json``.
+    """
+    from pathlib import Path
+
+    from .config import FitConfig
+    from .rundir import atomic_path
+
+    path, out = Path(path), Path(out)
+    cols = dict(OUTCOME_COLUMNS, **(columns or {}))
+    # -- validate everything before writing anything
+    if not path.is_file():
+        raise InputError(f"outcome table {str(path)!r} does not exist.")
+    try:
+        raw = Table.read(path)
+    except Exception as exc:  # astropy raises many types for unreadable tables
+        raise InputError(f"outcome table {str(path)!r} cannot be read: {exc}") from None
+    missing = [cols[c] for c in ("mag", "detected") if cols[c] not in raw.colnames]
+    if missing:
+        raise InputError(f"outcome table {str(path)!r} has no column(s) {missing}; its columns are {raw.colnames}. "
+                         "Name yours with --mag-column / --detected-column.")
+    if len(raw) == 0:
+        raise InputError(f"outcome table {str(path)!r} has no rows.")
+    if out.exists() and (not out.is_dir() or any(out.iterdir())):
+        raise InputError(f"output folder {str(out)!r} exists and is not empty; give a new or empty folder "
+                         "(nothing is overwritten).")
+    load_spec(model)
+    table = Table({"mag": np.asarray(raw[cols["mag"]], float), "detected": np.asarray(raw[cols["detected"]])})
+    has_xy = cols["x"] in raw.colnames and cols["y"] in raw.colnames
+    if has_xy:
+        table["x"] = np.asarray(raw[cols["x"]], float)
+        table["y"] = np.asarray(raw[cols["y"]], float)
+    if cols["noise"] in raw.colnames:
+        table["noise"] = np.asarray(raw[cols["noise"]], float)
+    noise = None if noise_map is None else _read_map(noise_map, "noise map").astype(np.float32)
+    bad = None if mask is None else _read_map(mask, "mask") != 0
+    if noise is not None and bad is not None and noise.shape != bad.shape:
+        raise InputError(f"noise map {noise.shape} and mask {bad.shape} differ in shape.")
+    shape = None
+    for arr in (noise, bad):
+        if arr is not None:
+            shape = arr.shape
+    if image_shape is not None:
+        if shape is not None and tuple(image_shape) != tuple(shape):
+            raise InputError(f"--image-shape {tuple(image_shape)} differs from the maps' shape {shape}.")
+        shape = tuple(int(v) for v in image_shape)
+    if shape is None and has_xy:
+        shape = (int(np.nanmax(table["y"])) + 2, int(np.nanmax(table["x"])) + 2)
+    if shape is None:
+        shape = (2, 2)  # no positions: the image plays no role
+    config = RunConfig(seed=int(seed), fit=FitConfig(model=model))
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise InputError(f"output folder {str(out)!r} cannot be created: {exc}") from None
+
+    # -- fit
+    mags = np.asarray(table["mag"], float)
+    good = np.isfinite(mags)
+    lo = math.floor(np.min(mags[good]) / mag_bin) * mag_bin
+    hi = math.ceil(np.max(mags[good]) / mag_bin) * mag_bin
+    edges = R.magnitude_edges(lo, hi, mag_bin)
+    centers = 0.5 * (edges[:-1] + edges[1:])
+    if bad is None:
+        bad = np.zeros(shape, bool)
+    if noise is None and "noise" in table.colnames and has_xy:
+        footprint = "injections"  # the injections' own positions sample the footprint
+    else:
+        footprint = "maps" if noise is not None or mask is not None else "uniform"
+    where = {"maps": "every unmasked pixel of the maps", "injections": "the injections' positions and noise",
+             "uniform": "a uniform footprint"}[footprint]
+    log(f"fit: {len(table)} outcomes of {kind} from {path.name}; model {model}; image average over {where}")
+    post, entry = fit_kind(table, kind=kind, quantity="completeness", requested=model, config=config,
+                           image_shape=shape, noise=noise if noise is not None else np.ones(shape, np.float32),
+                           mask=bad, wcs_header=None, mag_range=(lo, hi), mag_centers=centers, log=log)
+    if footprint == "injections":
+        from .posterior import Footprint
+
+        sig = np.asarray(table["noise"], float)
+        ok = np.isfinite(sig) & (sig > 0) & bool(post.meta.get("sigma_ref"))
+        d = np.where(ok, -2.5 * np.log10(np.where(ok, sig, 1.0) / (post.meta.get("sigma_ref") or 1.0)), 0.0)
+        u = 2.0 * np.asarray(table["x"], float) / max(shape[1] - 1, 1) - 1.0
+        v = 2.0 * np.asarray(table["y"], float) / max(shape[0] - 1, 1) - 1.0
+        post.cells = Footprint(depth=d, u=u, v=v, weight=np.full(d.size, 1.0 / d.size), npix=int(d.size))
+        entry.update(post.summary_magnitudes())
+        entry["curve"] = _json_curve(post.curve(centers))
+    binned = R.completeness(mags, np.asarray(table["detected"]).astype(bool), edges)
+    (out / "posterior").mkdir(exist_ok=True)
+    post.save(out / "posterior" / f"{kind}_completeness.npz")
+    entry["posterior_file"] = f"posterior/{kind}_completeness.npz"
+    entry["footprint"] = footprint
+    summary = {"source": str(path), "kinds": {kind: {"completeness": binned.to_dict(), "model": entry}}}
+    from .plots import save_figure
+    from .plots.completeness import ratio_curve
+    from .plots.data import BinnedCurve, PosteriorBand
+
+    ax = ratio_curve(BinnedCurve(binned.centers, binned.ratio, binned.lower, binned.upper, binned.n),
+                     posterior=PosteriorBand.from_dict(entry["curve"], label=entry["name"]))
+    ax.set_title(f"{kind}: {len(table)} injections from {path.name}")
+    (out / "figures").mkdir(exist_ok=True)
+    save_figure(ax.figure, out / "figures" / f"{kind}_completeness")
+    import json
+
+    with atomic_path(out / "summary.json") as tmp:
+        tmp.write_text(json.dumps(summary, indent=2, default=_json_default) + "\n")
+    return summary
+
+
+def _json_default(obj):
+    if isinstance(obj, np.integer):
+        return int(obj)
+    if isinstance(obj, np.floating):
+        return float(obj) if np.isfinite(obj) else None
+    if isinstance(obj, np.ndarray):
+        return obj.tolist()
+    return str(obj)

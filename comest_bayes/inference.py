@@ -848,7 +848,7 @@ def _importance_round(model, mean, cov, df, ndraws, rng):
     return draws, log_p, np.asarray(lw_s, dtype=np.float64).ravel(), float(np.asarray(khat).ravel()[0])
 
 
-def importance_posterior(model, lap: LaplaceResult, *, seed: int, ndraws: int = 4000, nout: int = 2000,
+def importance_posterior(model, lap: LaplaceResult, *, seed: int, ndraws: int = 2000, nout: int = 2000,
                          df: float = 10.0, min_ess: float = 1000.0, adapt: bool = True) -> PosteriorSamples:
     """Posterior draws by Pareto-smoothed importance sampling from the Laplace approximation.
 
@@ -952,7 +952,7 @@ def fit(model, *, seed: int, sample: bool = True, nstarts: int = 6, min_ess: flo
         ``emcee`` (the reference), ``importance``
         (:func:`importance_posterior` from the Laplace approximation, asking
         for an effective sample size of ``min(min_ess, IS_MIN_ESS)`` and
-        drawing four times more proposals once if that falls short), or
+        drawing four times more proposals (8000) once if that falls short), or
         ``auto``: importance sampling, and emcee when its Pareto k-hat or
         effective sample size still fails (:data:`IS_KHAT_MAX`).
     start : array, optional
@@ -976,7 +976,7 @@ def fit(model, *, seed: int, sample: bool = True, nstarts: int = 6, min_ess: flo
         post = importance_posterior(model, lap, seed=seed, min_ess=is_ess)
         if not post.diagnostics.converged and post.diagnostics.khat <= IS_KHAT_MAX:
             # enough overlap, too few effective draws: four times more proposal draws
-            post = importance_posterior(model, lap, seed=int_seed_for(seed, "importance-more"), ndraws=16000,
+            post = importance_posterior(model, lap, seed=int_seed_for(seed, "importance-more"), ndraws=8000,
                                         min_ess=is_ess)
         if sampler == "auto" and not post.diagnostics.converged:
             note = post.diagnostics.warnings[-1] + "; sampled with emcee instead"

@@ -112,7 +112,7 @@ CLI_OPTIONS = {
                                                                 "double_powerlaw or the path of a TOML spec"},
     "--mag-range": {"dest": "mag_range", "nargs": 2, "type": float, "default": None, "metavar": ("LO", "HI"),
                     "help": "measured-magnitude range fitted (default: the run's injected range, faint end "
-                            "cut where the completeness falls below 10%)"},
+                            "cut where the completeness falls below 10%%)"},
     "--mode": {"dest": "mode", "choices": list(MODES), "default": "joint",
                "help": "completeness uncertainty: joint (sampled with the counts), marginal (pooled over "
                        "completeness draws) or fixed (posterior median; too-narrow intervals)"},

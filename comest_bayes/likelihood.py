@@ -1493,9 +1493,7 @@ class CompletenessModel:
         t = self.full(self._thetas(np.atleast_2d(thetas)))
         mags = np.atleast_1d(np.asarray(mags, np.float64))
         nm = mags.size
-        size = 16
-        while size < nm:  # pad the magnitudes to a power of two: few compiled shapes
-            size *= 2
+        size = 16 * -(-nm // 16)  # pad the magnitudes to a multiple of 16: few compiled shapes
         mags = jnp.asarray(np.concatenate([mags, np.full(size - nm, mags[-1])]))
         p = len(weight)
         cov = Covariates.make(np.zeros(p), depth, u, v)

@@ -451,10 +451,10 @@ def _fit_stages(run: RunDirectory, image: ImageData, det: DetectionResult, confi
             log(f"warning: {kind} {quantity}: {w}")
         m50 = entry.get("m50", {})
         med = m50.get("median")
-        chosen = entry["name"] + (" (selected by PSIS-LOO)" if entry.get("selection") else "")
+        chosen = entry["name"] + (" (selected)" if entry.get("selection") else "")
         log(f"fit: {kind} {quantity}: {chosen}, m50 = "
             + ("n/a" if med is None else f"{med:.2f} (+{m50['hi68'] - med:.2f}/-{med - m50['lo68']:.2f})")
-            + f", min ESS {min(entry['diagnostics'].get('ess', [0]) or [0]):.0f}, {entry['seconds']:.1f} s")
+            + f", ESS {float(np.min(entry['diagnostics'].get('ess') or [0])):.0f}, {entry['seconds']:.1f} s")
 
     run_tasks(fit_task, tasks, on_result=on_result, executor=compute.executor, workers=compute.workers,
               scheduler=compute.scheduler, progress=compute.progress, desc="fits")

@@ -150,7 +150,7 @@ def average_crossings(model, thetas, footprint: Footprint, levels, lo: float, hi
                       xtol: float = 1e-4) -> dict:
     """Per draw, the magnitudes where the image-average f falls to each level.
 
-    A 0.2-mag grid over ``[lo - 2, hi + 2]`` brackets every draw's first
+    A 0.25-mag grid over ``[lo - 1, hi + 1]`` brackets every draw's first
     crossing (the image-average curve is monotone); the Illinois variant of
     regula falsi then refines each bracket with exact footprint averages to
     ``xtol`` mag (default 1e-4, a tenth or less of any posterior sd).
@@ -162,7 +162,7 @@ def average_crossings(model, thetas, footprint: Footprint, levels, lo: float, hi
         (e.g. a plateau below it) or starts below it.
     """
     thetas = np.atleast_2d(np.asarray(thetas, float))
-    grid = np.arange(lo - 2.0, hi + 2.0 + 0.2, 0.2)
+    grid = np.arange(lo - 1.0, hi + 1.0 + 0.25, 0.25)
     fc = average_prob(model, thetas, grid, footprint)
     args = (footprint.depth, footprint.u, footprint.v, footprint.weight)
     out = {}

@@ -93,7 +93,7 @@ def monotone_spline(t, eta_free):
     t_last = SPLINE_T0 + n_free * SPLINE_H
     pos = (t - SPLINE_T0) / SPLINE_H
     idx = jnp.clip(jnp.floor(pos).astype(jnp.int32), 0, n_free - 1)
-    u = jnp.clip(t - (SPLINE_T0 + idx * SPLINE_H), 0.0, SPLINE_H)
+    u = t - (SPLINE_T0 + idx * SPLINE_H)  # in [0, h) inside; not clipped (a clip halves the slope at knots)
     r0 = rate[idx]
     r1 = rate[idx + 1]
     inside = cum[idx] + r0 * u + (r1 - r0) * u * u / (2.0 * SPLINE_H)
