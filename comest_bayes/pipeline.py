@@ -320,6 +320,7 @@ def _injection_stages(run: RunDirectory, image: ImageData, det: DetectionResult,
             if not realization_file(sims, kind, i).exists()]
     ndone = len(inj.kinds) * inj.nsims - len(todo)
     failures: list[str] = []
+    cpu = {"inject": 0.0}
     if todo:
         t0 = time.perf_counter()
         log(f"inject: {len(todo)} realizations to run ({ndone} done earlier) of kinds {', '.join(inj.kinds)} "
@@ -331,11 +332,13 @@ def _injection_stages(run: RunDirectory, image: ImageData, det: DetectionResult,
                 log(f"warning: realization {result.kind} #{result.index} failed; it will be retried on the "
                     f"next run:\n{result.error.strip().splitlines()[-1]}")
                 return
+            cpu["inject"] += float(result.seconds.get("cpu", 0.0))
             write_realization(result, sims)
 
         run_tasks(run_realization, todo, on_result=on_result, executor=compute.executor, workers=compute.workers,
                   scheduler=compute.scheduler, progress=compute.progress, desc="realizations")
         timings["inject"] = round(time.perf_counter() - t0, 3)
+        timings["inject_cpu"] = round(cpu["inject"], 3)
         log(f"inject: {len(todo) - len(failures)} realizations in {timings['inject']:.1f} s"
             + (f"; {len(failures)} failed" if failures else ""))
     else:
@@ -375,8 +378,9 @@ def _injection_stages(run: RunDirectory, image: ImageData, det: DetectionResult,
 
     # ---- the Bayesian completeness and purity models ---------------------------------
     t0 = time.perf_counter()
-    if _fit_stages(run, image, det, config, kinds, edges, mag_range, log, compute):
+    if _fit_stages(run, image, det, config, kinds, edges, mag_range, log, compute, cpu):
         timings["fit"] = round(time.perf_counter() - t0, 3)
+        timings["fit_cpu"] = round(cpu.get("fit", 0.0), 3)
 
     summary = {
         "format": SUMMARY_FORMAT,
@@ -391,11 +395,13 @@ def _injection_stages(run: RunDirectory, image: ImageData, det: DetectionResult,
 
 
 def _fit_stages(run: RunDirectory, image: ImageData, det: DetectionResult, config: RunConfig, kinds: dict,
-                edges, mag_range, log, compute: "ComputeOptions") -> int:
+                edges, mag_range, log, compute: "ComputeOptions", cpu: dict | None = None) -> int:
     """Fit completeness (and purity) per kind, in parallel; add their entries to ``kinds`` (resumable).
 
-    Returns the number of fits run now (0 when all were done earlier or no model is fitted).
+    Returns the number of fits run now (0 when all were done earlier or no model is fitted); their
+    CPU seconds (as measured in the workers) are added to ``cpu["fit"]``.
     """
+    cpu = {} if cpu is None else cpu
     from .executors import run_tasks
     from .fitting import fit_task
     from .rundir import atomic_path
@@ -426,6 +432,7 @@ def _fit_stages(run: RunDirectory, image: ImageData, det: DetectionResult, confi
     def on_result(task, result):
         post, entry = result
         kind, quantity = task["kind"], task["quantity"]
+        cpu["fit"] = cpu.get("fit", 0.0) + float(entry.get("cpu_seconds", 0.0))
         key = "model" if quantity == "completeness" else "purity_model"
         files = []
         if post is not None:

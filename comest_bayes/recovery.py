@@ -233,6 +233,7 @@ def _run_realization(task: RealizationTask) -> RealizationResult:
 
     ctx, kind, index = task.context, task.kind, task.index
     t0 = time.perf_counter()
+    c0 = time.process_time()
     base, mask, noise = _arrays(ctx.base_path, ctx.mask_path, ctx.noise_path)
     cosmos = _cosmos(ctx.injection) if kind == "cosmos" else None
     observed = _table(ctx.detection_path) if kind == "observed" else None
@@ -261,7 +262,7 @@ def _run_realization(task: RealizationTask) -> RealizationResult:
     truth, dets = match_realization(truth, det.catalog, _table(ctx.baseline_path), noise, ctx)
     truth["realization"] = np.full(len(truth), index, dtype=np.int32)
     dets["realization"] = np.full(len(dets), index, dtype=np.int32)
-    seconds.update(detect=t3 - t2, match=time.perf_counter() - t3)
+    seconds.update(detect=t3 - t2, match=time.perf_counter() - t3, cpu=time.process_time() - c0)
     return RealizationResult(kind, index, truth, dets, seconds=seconds)
 
 

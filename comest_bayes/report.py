@@ -113,7 +113,10 @@ def _interval(entry: dict | None, fmt: str = "{:.2f}") -> str:
     if not entry or entry.get("median") is None:
         frac = (entry or {}).get("defined_fraction")
         return "n/a" + (f" (defined in {100 * frac:.0f}% of draws)" if frac is not None else "")
-    return f"{fmt.format(entry['median'])} [{fmt.format(entry['lo68'])}, {fmt.format(entry['hi68'])}]"
+    text = f"{fmt.format(entry['median'])} [{fmt.format(entry['lo68'])}, {fmt.format(entry['hi68'])}]"
+    if entry.get("extrapolated"):
+        text += " extrapolated: outside the injected magnitudes"
+    return text
 
 
 class _Report:

@@ -159,3 +159,24 @@ def test_two_pass_crossing_magnitudes_equal_the_full_fine_grid():
         want = crossing_magnitudes(grid, f, level)
         np.testing.assert_allclose(values, want, atol=2e-3)
         assert np.all(np.isfinite(values))
+
+
+def test_all_injections_in_one_bin_warn_that_the_shape_is_unconstrained():
+    # every injection within 0.05 mag of 23.6: the data say f ~ 0.8 there and nothing about the width, m80 or
+    # m90 (the case: m80 came out 0.4 mag off with no warning)
+    table, noise_map = _outcomes(3000, seed=6)
+    table["mag"] = 23.6 + 0.09 * (np.asarray(table["mag"]) - 21.0) / 5.5 - 0.045
+    with warnings.catch_warnings(record=True):
+        warnings.simplefilter("always")
+        post, entry = _fit(table, noise_map, "logistic_depth", min_ess=100)
+    assert any("less than two" in w and "not constrained" in w for w in entry["warnings"])
+    # and a magnitude outside the injected range is flagged as extrapolated
+    assert post.extrapolated(24.5) and not post.extrapolated(23.6)
+
+
+def test_fit_records_the_cpu_it_spent_and_the_injected_range(tmp_path):
+    table, noise_map = _outcomes(3000, seed=7)
+    post, entry = _fit(table, noise_map, "logistic_depth", min_ess=100)
+    lo, hi = post.meta["injected_range"]
+    assert lo == pytest.approx(float(np.min(table["mag"]))) and hi == pytest.approx(float(np.max(table["mag"])))
+    assert entry["m50"]["extrapolated"] is False and entry["m50"]["lo95"] < entry["m50"]["lo68"]

@@ -1,0 +1,116 @@
+"""Benchmark: what the completeness fit costs, as a ratio to the injection it models.
+
+Three measurements, each in fresh processes launched as a user would launch them:
+
+* ``demo``: ``comest-bayes demo`` with its defaults (point + buldisk, completeness and purity
+  fits, ``--model auto``).  The run records the CPU seconds that the injection-recovery workers
+  and the fit workers spent (``run.json`` timings ``inject_cpu`` and ``fit_cpu``); the ratio
+  ``fit_cpu / inject_cpu`` is the figure of merit (target <= 0.2).  Run twice into fresh
+  folders: the first with an empty JAX compilation cache (a user's first run), the second with
+  the cache the first left.
+* ``million``: 10^6 outcomes of a skewed truth (``synthetic`` ``skew_faint``) fitted by
+  ``fitting.fit_kind`` with ``auto`` (selection of every rung, then the chosen model's
+  posterior), wall time in a fresh process with the warm cache (target <= 10 s on 2 cores).
+* ``threads``: the largest number of threads of a process running that fit after
+  ``runtime.configure(threads=1)`` (what ``--ncpu 1`` gives), read from ``/proc/self/task``.
+
+Usage::
+
+    python benchmarks/bench_fit_cost.py [--skip-demo] [--demo-size 3000] [--out benchmarks/results/fit_cost.json]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import subprocess
+import sys
+import tempfile
+import textwrap
+import time
+from pathlib import Path
+
+HERE = Path(__file__).resolve().parent
+ROOT = HERE.parent
+
+MILLION = textwrap.dedent("""
+    import json, os, sys, threading, time, warnings
+    sys.path.insert(0, {root!r})
+    from comest_bayes import runtime
+    runtime.configure(threads=1)
+    import numpy as np
+    from comest_bayes import synthetic as S
+    from comest_bayes.config import RunConfig
+    from comest_bayes.fitting import fit_kind
+    from comest_bayes.ratios import magnitude_edges
+    peak = {{"threads": 0}}
+    def watch():
+        while True:
+            peak["threads"] = max(peak["threads"], len(os.listdir("/proc/self/task")))
+            time.sleep(0.05)
+    threading.Thread(target=watch, daemon=True).start()
+    scene = S.make_scene((512, 512), seed=1)
+    truth = S.get_truth("skew_faint")
+    lo, hi = truth.default_mag_range()
+    table = S.draw_outcomes(truth, scene, {n}, seed=2)
+    edges = magnitude_edges(lo, hi, 0.1)
+    warnings.simplefilter("ignore")
+    t0, c0 = time.perf_counter(), time.process_time()
+    post, entry = fit_kind(table, kind="point", quantity="completeness", requested="auto", config=RunConfig(seed=3),
+                           image_shape=scene.shape, noise=scene.noise, mask=scene.mask, wcs_header=None,
+                           mag_range=(lo, hi), mag_centers=0.5 * (edges[:-1] + edges[1:]))
+    wall, cpu = time.perf_counter() - t0, time.process_time() - c0
+    q = S.truth_quantities(truth, scene)
+    print(json.dumps({{"n": {n}, "wall": wall, "cpu": cpu, "threads": peak["threads"], "model": entry["name"],
+                      "m50": entry["m50"], "m50_truth": q["m50"], "cells": entry["n_cells"],
+                      "sampler": entry["diagnostics"].get("method"), "khat": entry["diagnostics"].get("khat")}}))
+""")
+
+
+def run_million(n: int, cache: str) -> dict:
+    env = dict(os.environ, COMEST_BAYES_CACHE=cache)
+    out = subprocess.run([sys.executable, "-c", MILLION.format(root=str(ROOT), n=n)], env=env, capture_output=True,
+                         text=True, check=True)
+    return json.loads(out.stdout.strip().splitlines()[-1])
+
+
+def run_demo(folder: Path, cache: str, size: int) -> dict:
+    env = dict(os.environ, COMEST_BAYES_CACHE=cache)
+    t0 = time.perf_counter()
+    subprocess.run([sys.executable, "-m", "comest_bayes.cli", "demo", "--out", str(folder), "--size", str(size),
+                    "--no-report", "--quiet"], env=env, check=True, cwd=str(ROOT))
+    wall = time.perf_counter() - t0
+    state = json.loads((folder / "run.json").read_text())
+    t = state.get("timings", {})
+    return {"wall": wall, "timings": t, "ratio_cpu": t.get("fit_cpu", float("nan")) / t.get("inject_cpu", float("nan")),
+            "ratio_wall": t.get("fit", float("nan")) / t.get("inject", float("nan"))}
+
+
+def main(argv=None) -> int:
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    p.add_argument("--skip-demo", action="store_true")
+    p.add_argument("--demo-size", type=int, default=3000)
+    p.add_argument("--sizes", nargs="+", type=int, default=[30_000, 1_000_000])
+    p.add_argument("--out", default=str(HERE / "results" / "fit_cost.json"))
+    a = p.parse_args(argv)
+    result = {"machine": {"cpus": os.cpu_count(), "python": sys.version.split()[0]}}
+    with tempfile.TemporaryDirectory() as tmp:
+        cache = str(Path(tmp) / "jax-cache")
+        if not a.skip_demo:
+            result["demo_cold"] = run_demo(Path(tmp) / "demo1", cache, a.demo_size)
+            print("demo, empty compilation cache:", json.dumps(result["demo_cold"]), flush=True)
+            result["demo_warm"] = run_demo(Path(tmp) / "demo2", cache, a.demo_size)
+            print("demo, warm compilation cache:", json.dumps(result["demo_warm"]), flush=True)
+        for n in a.sizes:
+            run_million(n, cache)  # fills the cache for this padded size
+            result[f"fit_{n}"] = run_million(n, cache)
+            print(f"{n} outcomes, warm cache:", json.dumps(result[f"fit_{n}"]), flush=True)
+    Path(a.out).parent.mkdir(parents=True, exist_ok=True)
+    Path(a.out).write_text(json.dumps(result, indent=2) + "\n")
+    print(f"wrote {a.out}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
