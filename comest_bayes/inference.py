@@ -770,6 +770,9 @@ def sample_posterior(model, lap: LaplaceResult, *, seed: int, nwalkers: int | No
 #: effective draws the Monte Carlo error of a 95% interval's end is about a tenth of the posterior sd.
 IS_MIN_ESS = 400.0
 
+#: Longest emcee run (steps per walker) when importance sampling fails and ``sampler="auto"`` falls back.
+FALLBACK_MAX_STEPS = 5000
+
 #: Rounds of moment matching after the first importance-sampling round (each only when the previous
 #: round's k-hat exceeds 0.5 or its effective sample size falls short).
 ADAPT_ROUNDS = 3
@@ -961,7 +964,9 @@ def fit(model, *, seed: int, sample: bool = True, nstarts: int = 6, min_ess: flo
         for an effective sample size of ``min(min_ess, IS_MIN_ESS)`` and
         drawing four times more proposals (8000) once if that falls short), or
         ``auto``: importance sampling, and emcee when its Pareto k-hat or
-        effective sample size still fails (:data:`IS_KHAT_MAX`).
+        effective sample size still fails (:data:`IS_KHAT_MAX`), to ESS
+        ``min(min_ess, IS_MIN_ESS)`` in at most :data:`FALLBACK_MAX_STEPS`
+        steps.
     start : array, optional
         An extra first MAP start (a warm start, e.g. a simpler rung's MAP).
     mp : MapResult, optional
@@ -987,8 +992,11 @@ def fit(model, *, seed: int, sample: bool = True, nstarts: int = 6, min_ess: flo
                                         min_ess=is_ess)
         if sampler == "auto" and not post.diagnostics.converged:
             note = post.diagnostics.warnings[-1] + "; sampled with emcee instead"
-            post = sample_posterior(model, lap, seed=seed, nwalkers=nwalkers, min_ess=min_ess, max_steps=max_steps,
-                                    chunk=chunk, progress=progress, moves=moves)
+            # bounded fallback: ESS 400 (as for importance sampling) and at most FALLBACK_MAX_STEPS steps; a
+            # shorter chain than emcee's 50-tau rule asks for warns with its numbers
+            post = sample_posterior(model, lap, seed=seed, nwalkers=nwalkers, min_ess=min(min_ess, IS_MIN_ESS),
+                                    max_steps=min(max_steps, FALLBACK_MAX_STEPS), chunk=chunk, progress=progress,
+                                    moves=moves)
             post.diagnostics.warnings.insert(0, note)
         elif not post.diagnostics.converged:
             warnings.warn(post.diagnostics.warnings[-1], ConvergenceWarning, stacklevel=2)

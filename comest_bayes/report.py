@@ -480,19 +480,23 @@ def _model_sections(r: _Report) -> None:
         if sel and sel.get("table"):
             rows, classes = [], {}
             for i, t in enumerate(sel["table"]):
+                worst = max((v.get("diff_over_sd") or 0.0 for v in (t.get("quantities") or {}).values()), default=None)
                 rows.append([t["name"], t["nparams"], _num(t.get("elpd_loo")), _num(t.get("se")),
                              _num(t.get("delta_elpd")), _num(t.get("se_delta")), _num(t.get("p_loo")),
-                             _num(t.get("khat_max")), "yes" if t.get("chosen") else ""])
+                             _num(worst), {True: "yes", False: "no"}.get(t.get("adequate"), ""),
+                             "yes" if t.get("chosen") else ""])
                 if t.get("chosen"):
                     classes[i] = "chosen"
-            r.p(f"Requested '{e.get('requested')}': selected <b>{_esc(e['name'])}</b> by PSIS-LOO. "
+            r.p(f"Requested '{e.get('requested')}': selected <b>{_esc(e['name'])}</b>. "
                 f"Rule: {_esc(sel.get('rule', ''))}.", raw=True)
-            r.table(["model", "parameters", "elpd_loo", "se", "Δ elpd", "se Δ", "p_loo", "max k̂", "chosen"], rows,
+            r.table(["model", "parameters", "elpd_loo", "se", "Δ elpd", "se Δ", "p_loo",
+                     "largest |Δ quantity| / sd", "adequate", "chosen"], rows,
                     numeric=(1, 2, 3, 4, 5, 6, 7), row_classes=classes)
             table = sel["table"]
             r.figure(f"selection_{kind}_{q}", f"Model selection for the {kind} {q}",
-                     "Difference in expected log predictive density (PSIS-LOO) of each candidate to the best one, "
-                     "with its standard error; the simplest model within max(4, 2 se) nats of the best is chosen.",
+                     "Difference in expected log predictive density (leave-one-out) of each candidate to the best one, "
+                     "with its standard error; the simplest adequate model within max(4, 2 se) nats of the best is "
+                     "chosen.",
                      lambda table=table: selection_plot(table, ax=new_axes(None, (7.5, 0.55 * len(table) + 1.8)))
                      .figure)
         else:
@@ -503,7 +507,13 @@ def _model_sections(r: _Report) -> None:
                     [[n, _num(v.get("median"), "{:.4g}"), f"[{_num(v.get('lo68'), '{:.4g}')}, "
                       f"{_num(v.get('hi68'), '{:.4g}')}]"] for n, v in params.items()], numeric=(1, 2))
         diag = e.get("diagnostics") or {}
-        if diag:
+        if diag and diag.get("method") == "importance":
+            r.table(["posterior draws", "proposal draws", "Pareto k̂", "ESS", "converged", "fit time (s)"],
+                    [["importance sampling from the Laplace approximation", diag.get("ndraws"),
+                      _num(diag.get("khat")), _num(diag.get("ess"), "{:.0f}"),
+                      "yes" if diag.get("converged") else "NO", _num(e.get("seconds"), "{:.1f}")]],
+                    numeric=(1, 2, 3, 5))
+        elif diag:
             ess = [v for v in diag.get("ess", []) if v is not None]
             tau = [v for v in diag.get("tau", []) if v is not None]
             r.table(["walkers", "steps", "burn-in", "mean acceptance", "max τ (steps)", "min ESS", "converged",
@@ -512,14 +522,15 @@ def _model_sections(r: _Report) -> None:
                       _num(diag.get("acceptance_mean")), _num(max(tau) if tau else None, "{:.1f}"),
                       _num(min(ess) if ess else None, "{:.0f}"), "yes" if diag.get("converged") else "NO",
                       _num(e.get("seconds"), "{:.1f}")]], numeric=(0, 1, 2, 3, 4, 5, 7))
-            check = e.get("shape_check") or {}
-            if check.get("p_value") is not None:
-                r.p(f"Shape check against the binned outcomes (comest_bayes.checks): chi2 = {check['chi2']:.1f} for "
-                    f"{check['dof']} magnitude bins, p = {check['p_value']:.2g}; largest deviation "
-                    f"{check['max_abs_z']:.1f} sigma at {check['mag_at_max']:.2f} mag. A p below 0.001 means the "
-                    "model's form, not its statistics, limits it: then trust the binned ratios.")
-            for w in e.get("warnings") or []:
-                r.p(f"warning: {w}", "warn")
+        check = e.get("shape_check") or {}
+        if check.get("p_value") is not None:
+            r.p(f"Shape check against the binned outcomes (comest_bayes.checks): chi2 = {check['chi2']:.1f} for "
+                f"{check['dof']} magnitude bins, p = {check['p_value']:.2g}; largest deviation "
+                f"{check['max_abs_z']:.1f} sigma at {check['mag_at_max']:.2f} mag. A p below 0.001 means the "
+                "model's form, not its statistics, limits it: then trust the binned ratios.")
+        for w in e.get("warnings") or []:
+            r.p(f"warning: {w}", "warn")
+        if diag and diag.get("method") != "importance":
 
             def make(diag=diag, kind=kind, q=q, name=e["name"]):
                 post = RD.load_posterior(run, kind, q)

@@ -10,8 +10,9 @@ from comest_bayes.errors import ConfigError
 from comest_bayes.modelspec import (DEFAULT_PRIORS, ModelSpec, list_specs, load_spec, resolve_candidates,
                                     spec_from_mapping, with_priors)
 
-SHIPPED = ["auto", "logistic", "logistic_depth", "logistic_depth_size", "logistic_depth_smooth",
-           "logistic_smooth", "pritchet", "probit", "probit_depth", "purity"]
+SHIPPED = ["auto", "auto_smooth", "logistic", "logistic_depth", "logistic_depth_size", "logistic_depth_smooth",
+           "logistic_smooth", "pritchet", "probit", "probit_depth", "purity", "richards_depth", "spline_depth",
+           "spline_depth_width"]
 
 
 def test_list_specs_finds_every_shipped_file():
@@ -79,11 +80,14 @@ def test_shipped_specs_have_the_documented_content():
     purity = load_spec("purity")
     assert (purity.kind, purity.magnitude, purity.spatial, purity.link) == ("purity", "measured", "none", "logistic")
     auto = load_spec("auto")
-    assert auto.candidates == ("logistic", "logistic_depth", "logistic_smooth", "logistic_depth_smooth")
+    assert auto.candidates == ("logistic", "logistic_depth", "richards_depth", "spline_depth")
     assert [c.name for c in resolve_candidates("auto")] == list(auto.candidates)
-    # simplest first: parameter counts never decrease along the candidate list
-    counts = [len(c.parameters()) for c in resolve_candidates("auto")]
-    assert counts == sorted(counts)
+    # simplest first: parameter counts never decrease along the candidate list (a spline adds its knot log-rates)
+    counts = [len(c.parameters()) + (c.spline_knots if c.link == "spline" else 0) for c in resolve_candidates("auto")]
+    assert counts == sorted(counts) and counts == [4, 5, 6, 21]
+    spline = load_spec("spline_depth")
+    assert (spline.link, spline.spatial, spline.spline_knots, spline.spline_tau) == ("spline", "depth", 16, "evidence")
+    assert load_spec("auto_smooth").candidates[-1] == "spline_depth"
 
 
 def test_default_priors_are_the_documented_ones():

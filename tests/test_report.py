@@ -79,7 +79,8 @@ def _expected_figures(summary: dict, run_dir) -> set:
         for q, key in (("completeness", "model"), ("purity", "purity_model")):
             entry = k.get(key) or {}
             if entry.get("name"):
-                names.add(f"sampler_{kind}_{q}")
+                if (entry.get("diagnostics") or {}).get("method") != "importance":  # emcee: chains to show
+                    names.add(f"sampler_{kind}_{q}")
                 if entry.get("selection"):
                     names.add(f"selection_{kind}_{q}")
         if (k.get("model") or {}).get("m50_map_file"):
