@@ -377,6 +377,11 @@ class CompletenessPosterior:
         shape = np.broadcast_shapes(np.shape(m), np.shape(x), np.shape(y))
         return self.model.prob(thetas, cov).reshape((len(thetas),) + shape)
 
+    def _range_label(self) -> str:
+        if self.meta.get("quantity") == "purity":
+            return "measured magnitudes of the detections"
+        return "injected magnitudes"
+
     def extrapolated(self, m) -> np.ndarray:
         """True where a magnitude lies outside the injected range (the model's extrapolation)."""
         lo, hi = self.meta.get("injected_range") or (-np.inf, np.inf)
@@ -389,7 +394,7 @@ class CompletenessPosterior:
         out = self.extrapolated(m)
         if np.any(out):
             lo, hi = self.meta["injected_range"]
-            warnings.warn(f"{int(out.sum())} queried magnitude(s) lie outside the injected range "
+            warnings.warn(f"{int(out.sum())} queried magnitude(s) lie outside the {self._range_label()} range "
                           f"[{lo:.2f}, {hi:.2f}]: there the {self.meta.get('quantity', 'completeness')} is the "
                           "model's extrapolation, not a measurement.", ExtrapolationWarning, stacklevel=3)
         dr = self.meta.get("depth_range")
@@ -462,9 +467,8 @@ class CompletenessPosterior:
             if extra:
                 lo, hi = self.meta["injected_range"]
                 warnings.warn(f"{key} of the {self.meta.get('kind', '')} {self.meta.get('quantity', 'completeness')} "
-                              f"= {q[2]:.2f} lies outside the injected magnitudes [{lo:.2f}, {hi:.2f}]: it is the "
-                              "model's extrapolation; widen the injected range to measure it.",
-                              ExtrapolationWarning, stacklevel=2)
+                              f"= {q[2]:.2f} lies outside the {self._range_label()} [{lo:.2f}, {hi:.2f}]: it is the "
+                              "model's extrapolation, not a measurement.", ExtrapolationWarning, stacklevel=2)
         return out
 
     def m50_map(self, step_pix: int = 64, *, nsamples: int | None = 500):

@@ -82,7 +82,7 @@ def _posterior(noise, mask, injected=(22.0, 25.0)):
 def test_extrapolated_magnitudes_are_flagged_and_warned(tmp_path):
     noise, mask = _maps(2)
     post = _posterior(noise, mask, injected=(22.0, 24.2))  # m50 ~ 24: m50 inside, the faint side outside
-    with pytest.warns(ExtrapolationWarning, match="outside the injected range"):
+    with pytest.warns(ExtrapolationWarning, match="outside the injected magnitudes range"):
         post.completeness([24.5, 25.0], x=20.0, y=20.0)
     with warnings.catch_warnings():
         warnings.simplefilter("error", ExtrapolationWarning)
