@@ -410,16 +410,16 @@ def fit_map(model, *, nstarts: int = 6, seed: int, jitter: float = 0.5, method: 
         starts.append(x)
 
     fun = _objective(model)
-    hess = None
+    def neg_hessian(x):
+        h = -np.asarray(model.hessian(np.asarray(x, dtype=np.float64)), dtype=np.float64)
+        return np.where(np.isfinite(h), h, 0.0)
+
+    hess = neg_hessian if method == "newton" else None
     if method == "L-BFGS-B":
         options = {"maxiter": maxiter, "ftol": 1e-13, "gtol": 1e-7, "maxcor": 20}
     elif method == "newton":
         # trust-region Newton with the exact Hessian: a few iterations from a warm start
         options = {"maxiter": 200, "gtol": 1e-6}
-
-        def hess(x):
-            h = -np.asarray(model.hessian(np.asarray(x, dtype=np.float64)), dtype=np.float64)
-            return np.where(np.isfinite(h), h, 0.0)
     else:
         options = {"maxiter": maxiter, "gtol": 1e-6}
     results = []

@@ -468,7 +468,7 @@ def choose_tau(model, *, seed: int, start=None, taus=TAU_GRID):
     """
     from .inference import fit_map
 
-    table, best = [], None
+    table = []
     prev = start
     for tau in taus:
         model.tau = tau
@@ -530,10 +530,9 @@ def select_model(data, candidates, *, seed: int, margin: float = 4.0, margin_se:
     MAP (warm-started from the previous rung's, all rungs sharing one compiled
     likelihood when their specs allow it) and the Laplace approximation;
     spline rungs with ``spline_tau = "evidence"`` first choose their
-    smoothness by :func:`choose_tau`.  ``loo_draws`` draws from the Laplace
-    Gaussian, importance-weighted to the posterior, give PSIS-LOO
-    (:func:`loo_grouped` with ``log_weights``).  No MCMC runs here: the
-    caller samples only the chosen model.  ``scoring="emcee"`` fits every
+    smoothness by :func:`choose_tau`.  Leave-one-out comes from the MAP and
+    the Laplace covariance (:func:`loo_laplace`, one Jacobian of the cell
+    terms).  No MCMC runs here: the caller samples only the chosen model.  ``scoring="emcee"`` fits every
     candidate with emcee and scores its draws (the earlier, slower reference).
 
     **Adequacy**: with ``quantities`` (a callable ``(model, draws) -> {name:
@@ -583,7 +582,7 @@ m SE}_\Delta)` nats).  If no adequate candidate is
     nstarts : int, default 2
         MAP starts per candidate (besides the warm start).
     loo_draws : int, default 1000
-        Laplace draws for PSIS-LOO (or emcee draws used, for ``"emcee"``).
+        Posterior draws used by PSIS-LOO with ``scoring="emcee"``.
     model_factory : callable, optional
         ``model_factory(spec, data) -> model`` (or ``(spec, data, layout)``);
         default :class:`comest_bayes.likelihood.CompletenessModel` on the
