@@ -47,8 +47,6 @@ __all__ = ["fit_kind", "fit_task", "purity_outcomes", "MIN_OUTCOMES"]
 
 #: Fewer usable outcomes than this: the fit still runs but warns that the prior dominates.
 MIN_OUTCOMES = 20
-#: Laplace draws used by PSIS-LOO during the selection (cost: draws x cells).
-LOO_DRAWS = 1000
 #: Offset of the probe magnitudes of the targeted quantities from the data's m50 (mag).
 PROBE_OFFSET = 0.3
 
@@ -162,7 +160,8 @@ def fit_task(task: dict) -> tuple:
 
 def fit_kind(outcomes: Table, *, kind: str, quantity: str, requested: str, config: RunConfig, image_shape,
              noise: np.ndarray, mask: np.ndarray, wcs_header: str | None, mag_range, mag_centers,
-             outcome_column: str = "detected", log=lambda s: None) -> tuple[CompletenessPosterior, dict]:
+             outcome_column: str = "detected", footprint_points=None,
+             log=lambda s: None) -> tuple[CompletenessPosterior, dict]:
     """Fit (or select and fit) the model of one kind and quantity.
 
     Parameters
@@ -176,6 +175,10 @@ def fit_kind(outcomes: Table, *, kind: str, quantity: str, requested: str, confi
         Spec name or path, or a selection spec such as ``auto``.
     noise, mask : ndarray
         Detection noise map and mask of the image (depth covariate, footprint).
+    footprint_points : (x, y, noise) arrays, optional
+        Average over these positions instead of every unmasked pixel of the
+        maps (:meth:`Footprint.from_points`; e.g. the injections themselves
+        when no noise map is known).
 
     Returns
     -------
@@ -201,24 +204,26 @@ def fit_kind(outcomes: Table, *, kind: str, quantity: str, requested: str, confi
     candidates = resolve_candidates(spec) if spec.is_selection else [spec]
     smooth = any(c.uses_smooth for c in candidates)
     # every unmasked pixel, grouped into weighted covariate cells: the exact image average
-    cells = Footprint.from_maps(noise, mask, data.meta.get("sigma_ref"), ddepth=0.02 if smooth else 0.01,
-                                nuv=8 if smooth else 1)
+    if footprint_points is not None:
+        cells = Footprint.from_points(*footprint_points, data.meta.get("sigma_ref"), image_shape)
+    else:
+        cells = Footprint.from_maps(noise, mask, data.meta.get("sigma_ref"), ddepth=0.02 if smooth else 0.01,
+                                    nuv=8 if smooth else 1)
     mag_lo, mag_hi = float(mag_range[0]), float(mag_range[1])
     edges = R.magnitude_edges(mag_lo, mag_hi, config.ratios.mag_bin)
     selection = None
     if spec.is_selection:
         probes = _probe_magnitudes(cov.m, outcome)
         quantities = targeted_quantities(cells, probes, mag_lo, mag_hi)
-        sel = select_model(data, candidates, seed=seed, loo_draws=LOO_DRAWS, quantities=quantities,
-                           mag_edges=edges)
+        sel = select_model(data, candidates, seed=seed, quantities=quantities, mag_edges=edges)
         chosen_spec = next(c for c in candidates if c.name == sel.chosen)
         model = sel.models[sel.chosen]
         mp = sel.fits[sel.chosen].map
         selection = {k: v for k, v in sel.to_dict().items() if k != "diagnostics"}
         chosen_loo = sel.loo[sel.chosen]
         if chosen_loo.n_bad_k:
-            warn.append(f"PSIS-LOO of the chosen model {sel.chosen}: {chosen_loo.n_bad_k} of {chosen_loo.n} "
-                        f"injections have Pareto k-hat > {chosen_loo.khat_threshold} (max {chosen_loo.khat_max:.2f}); "
+            warn.append(f"leave-one-out of the chosen model {sel.chosen}: {chosen_loo.n_bad_k} of {chosen_loo.n} "
+                        f"injections have a leverage above {chosen_loo.khat_threshold} (max {chosen_loo.khat_max:.2f}); "
                         "its leave-one-out score is approximate (the choice between models may be affected)")
         log(f"fit: {kind} {quantity}: selected {sel.chosen} among {[c.name for c in candidates]}")
     else:
@@ -408,20 +413,11 @@ def fit_outcome_file(path, out, *, kind: str = "injections", model: str = "auto"
     where = {"maps": "every unmasked pixel of the maps", "injections": "the injections' positions and noise",
              "uniform": "a uniform footprint"}[footprint]
     log(f"fit: {len(table)} outcomes of {kind} from {path.name}; model {model}; image average over {where}")
+    points = (table["x"], table["y"], table["noise"]) if footprint == "injections" else None
     post, entry = fit_kind(table, kind=kind, quantity="completeness", requested=model, config=config,
                            image_shape=shape, noise=noise if noise is not None else np.ones(shape, np.float32),
-                           mask=bad, wcs_header=None, mag_range=(lo, hi), mag_centers=centers, log=log)
-    if footprint == "injections":
-        from .posterior import Footprint
-
-        sig = np.asarray(table["noise"], float)
-        ok = np.isfinite(sig) & (sig > 0) & bool(post.meta.get("sigma_ref"))
-        d = np.where(ok, -2.5 * np.log10(np.where(ok, sig, 1.0) / (post.meta.get("sigma_ref") or 1.0)), 0.0)
-        u = 2.0 * np.asarray(table["x"], float) / max(shape[1] - 1, 1) - 1.0
-        v = 2.0 * np.asarray(table["y"], float) / max(shape[0] - 1, 1) - 1.0
-        post.cells = Footprint(depth=d, u=u, v=v, weight=np.full(d.size, 1.0 / d.size), npix=int(d.size))
-        entry.update(post.summary_magnitudes())
-        entry["curve"] = _json_curve(post.curve(centers))
+                           mask=bad, wcs_header=None, mag_range=(lo, hi), mag_centers=centers,
+                           footprint_points=points, log=log)
     binned = R.completeness(mags, np.asarray(table["detected"]).astype(bool), edges)
     (out / "posterior").mkdir(exist_ok=True)
     post.save(out / "posterior" / f"{kind}_completeness.npz")

@@ -121,6 +121,22 @@ class Footprint:
 
         return cls(depth=mean(depth), u=mean(u), v=mean(v), weight=n / n.sum(), npix=int(jj.size))
 
+    @classmethod
+    def from_points(cls, x, y, noise, sigma_ref: float | None, shape) -> "Footprint":
+        """The footprint as a sample of positions sampled it (e.g. the injections): one cell each, equal weights.
+
+        Depth follows the rule of the outcome table (non-finite or non-positive
+        noise counts at the reference depth).
+        """
+        x, y, sig = (np.asarray(a, np.float64) for a in (x, y, noise))
+        ny, nx = shape
+        depth = np.zeros(sig.size)
+        good = np.isfinite(sig) & (sig > 0)
+        if sigma_ref:
+            depth[good] = -2.5 * np.log10(sig[good] / float(sigma_ref))
+        return cls(depth=depth, u=2.0 * x / max(nx - 1, 1) - 1.0, v=2.0 * y / max(ny - 1, 1) - 1.0,
+                   weight=np.full(sig.size, 1.0 / sig.size), npix=int(sig.size))
+
     def __len__(self) -> int:
         return int(self.weight.size)
 

@@ -512,7 +512,7 @@ def _laplace_draws(model, lap, *, seed: int, ndraws: int):
     return draws, lw, rng
 
 
-def _weighted_moments(values: np.ndarray) -> tuple[float, float]:
+def _moments(values: np.ndarray) -> tuple[float, float]:
     ok = np.isfinite(values)
     if ok.mean() < 0.5:
         return math.nan, math.nan
@@ -690,8 +690,8 @@ m SE}_\Delta)` nats).  If no adequate candidate is
         qsum = {}
         if "q_draws" in info:
             for qname, values in info["q_draws"].items():
-                mean, sd = _weighted_moments(np.asarray(values, float))
-                ref, _ = _weighted_moments(np.asarray(extra[top]["q_draws"][qname], float))
+                mean, sd = _moments(np.asarray(values, float))
+                ref, _ = _moments(np.asarray(extra[top]["q_draws"][qname], float))
                 z = abs(mean - ref) / sd if sd > 0 and math.isfinite(mean) and math.isfinite(ref) else math.nan
                 qsum[qname] = {"mean": mean, "sd": sd, "diff_over_sd": z}
                 if name != top and not (z <= adequacy_fraction):

@@ -73,3 +73,17 @@ def test_fit_names_a_missing_column_before_writing_anything(outcome_files, tmp_p
     assert main(["fit", str(root / "balrog_like.fits"), "--out", str(out), "--mag-column", "TRUE_MAG",
                  "--detected-column", "FOUND", "--image-shape", "12"]) == 2
     assert "NY,NX" in capsys.readouterr().err and not out.exists()
+
+
+def test_fit_without_maps_averages_over_the_injections_own_footprint(outcome_files, tmp_path):
+    # no noise map: the injections (uniform over the unmasked pixels) sample the footprint, so the image average
+    # is their own average; the truth's m50 must still lie within 3 posterior sd (measured well inside)
+    root, truth = outcome_files
+    out = tmp_path / "nomaps"
+    assert main(["fit", str(root / "balrog_like.fits"), "--out", str(out), "--mag-column", "TRUE_MAG",
+                 "--detected-column", "FOUND", "--x-column", "XIMAGE", "--y-column", "YIMAGE",
+                 "--noise-column", "SKYRMS", "--image-shape", "160,200", "--quiet"]) == 0
+    entry = json.loads((out / "summary.json").read_text())["kinds"]["injections"]["model"]
+    assert entry["footprint"] == "injections"
+    m50 = entry["m50"]
+    assert abs(m50["median"] - truth["m50"]) < 3 * 0.5 * (m50["hi68"] - m50["lo68"])
