@@ -69,6 +69,7 @@ import numpy as np
 from scipy.optimize import minimize
 
 from .errors import InputError
+from .psis import psis_log_weights
 from .seeding import int_seed_for, rng_for
 
 __all__ = [
@@ -825,8 +826,8 @@ class ImportanceDiagnostics:
                 "warnings": list(self.warnings), "seconds": _json_float(self.seconds)}
 
 
-def _importance_round(model, mean, cov, df, ndraws, rng):
-    """Student-t proposal draws, their log posterior, PSIS-smoothed log weights and k-hat."""
+def _t_draws(model, mean, cov, df, ndraws, rng):
+    """Student-t proposal draws, their log posterior and raw log importance weights (unsmoothed)."""
     d = mean.size
     chol = np.linalg.cholesky(cov)
     z = rng.standard_normal((ndraws, d))
@@ -837,39 +838,55 @@ def _importance_round(model, mean, cov, df, ndraws, rng):
     log_q = -0.5 * (df + d) * np.log1p(np.sum(z * z, axis=1) * scale ** 2 / df)
     log_p = np.array(model.log_prob_batch(draws), dtype=np.float64)
     log_p[~np.isfinite(log_p)] = -np.inf
-    lw = log_p - log_q
-    finite = np.isfinite(lw)
-    if finite.sum() < 10:
-        raise InputError(f"importance_posterior: only {int(finite.sum())} of {ndraws} proposal draws have a finite "
-                         "log posterior; check the MAP and the Laplace covariance.")
-    lw = np.where(finite, lw - np.max(lw[finite]), -np.inf)
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore")
-        import arviz as az
+    return draws, log_p, log_p - log_q
 
-        lw_s, khat = az.psislw(lw[None, :].copy(), reff=1.0)
-    return draws, log_p, np.asarray(lw_s, dtype=np.float64).ravel(), float(np.asarray(khat).ravel()[0])
+
+def _psis(lw_raw):
+    """PSIS-smoothed normalised weights, their effective sample size and the Pareto k-hat."""
+    finite = np.isfinite(lw_raw)
+    if finite.sum() < 10:
+        raise InputError(f"importance_posterior: only {int(finite.sum())} of {lw_raw.size} proposal draws have a "
+                         "finite log posterior; check the MAP and the Laplace covariance.")
+    lw_s, khat = psis_log_weights(lw_raw)
+    w = np.exp(lw_s - np.max(lw_s))
+    w /= w.sum()
+    return w, float(1.0 / np.sum(w * w)), float(khat)
+
+
+#: Largest number of proposal draws :func:`importance_posterior` pools from its final proposal
+#: while the effective sample size falls short (and k-hat says the weights can be trusted).
+IS_MAX_DRAWS = 8000
 
 
 def importance_posterior(model, lap: LaplaceResult, *, seed: int, ndraws: int = 2000, nout: int = 2000,
                          df: float = 5.0, inflate: float = 1.3, min_ess: float = 1000.0,
-                         adapt: bool = True) -> PosteriorSamples:
+                         adapt: bool = True, max_draws: int | None = None) -> PosteriorSamples:
     """Posterior draws by Pareto-smoothed importance sampling from the Laplace approximation.
 
     Draws ``ndraws`` points from a multivariate Student-t with ``df``
     degrees of freedom centred on the MAP with the Laplace covariance times
     ``inflate**2`` (its heavier tails and larger scale cover a posterior a
     little wider or more skewed than the Gaussian), weights them by
-    posterior over proposal, smooths the largest
-    weights with PSIS (:func:`arviz.psislw`) and resamples ``nout``
-    equal-weight draws (systematic resampling, seeded).  The Pareto k-hat of
-    the weights says whether the result can be trusted: at or below
-    :data:`IS_KHAT_MAX` (0.7) the importance-sampling estimate converges at
-    the usual rate; above, the caller should run MCMC
-    (:func:`sample_posterior`).  On the completeness posteriors with
-    thousands of injections the Laplace approximation is close, k-hat is
-    typically 0.1-0.4 and the effective sample size a large fraction of
-    ``ndraws``, at the cost of ``ndraws`` log-posterior evaluations.
+    posterior over proposal, smooths the largest weights with PSIS
+    (:func:`comest_bayes.psis.psis_log_weights`) and resamples ``nout`` equal-weight draws
+    (systematic resampling, seeded).
+
+    Two ways to a better estimate, each used only when needed:
+
+    * **Moment matching** (``adapt``) when the proposal's shape is wrong
+      (k-hat above 0.5): draw afresh from a t with the importance-weighted
+      mean and covariance of the last round (at most :data:`ADAPT_ROUNDS`
+      times); this recovers most of what a skewed posterior costs.
+    * **Pooling** when the shape is right but the effective sample size is
+      short of ``min_ess``: add batches of ``ndraws / 2`` from the *same*
+      proposal until it is reached or ``max_draws`` are pooled (the pooled
+      draws are one sample of that proposal, so their weights are simply
+      concatenated and smoothed again).
+
+    The Pareto k-hat of the final weights says whether the result can be
+    trusted: at or below :data:`IS_KHAT_MAX` (0.7) the importance-sampling
+    estimate converges at the usual rate; above, the caller should run MCMC
+    (:func:`sample_posterior`).
 
     Parameters
     ----------
@@ -879,7 +896,7 @@ def importance_posterior(model, lap: LaplaceResult, *, seed: int, ndraws: int = 
     seed : int
         Root seed (stream ``"importance"``).
     ndraws, nout : int
-        Proposal draws and returned draws.
+        Proposal draws per batch and returned draws.
     df : float
         Degrees of freedom of the t proposal (default 5).
     inflate : float
@@ -890,49 +907,62 @@ def importance_posterior(model, lap: LaplaceResult, *, seed: int, ndraws: int = 
     min_ess : float
         Effective sample size below which the result counts as not converged.
     adapt : bool, default True
-        After the first round, draw again from a t with the importance-
-        weighted mean and covariance of the first (one step of adaptive
-        importance sampling), which recovers most of the efficiency lost to
-        a skewed posterior.
+        Allow moment-matching rounds.
+    max_draws : int, optional
+        Most draws pooled from the final proposal (default
+        :data:`IS_MAX_DRAWS`, at least ``ndraws``).
 
     Returns
     -------
     PosteriorSamples
-        ``samples`` (nout, D) equal-weight draws; ``chain`` holds the raw
-        proposal draws ``(ndraws, 1, D)`` and ``log_prob`` their log
-        posterior; ``diagnostics`` an :class:`ImportanceDiagnostics`.
+        ``samples`` (nout, D) equal-weight draws; ``chain`` holds the pooled
+        proposal draws ``(N, 1, D)`` and ``log_prob`` their log posterior;
+        ``diagnostics`` an :class:`ImportanceDiagnostics` (``ndraws`` counts
+        every log-posterior evaluation, ``nout`` the returned draws).
     """
     t0 = time.perf_counter()
     rng = rng_for(seed, "importance")
+    max_draws = max(int(ndraws), IS_MAX_DRAWS if max_draws is None else int(max_draws))
     mean, cov = lap.mean, lap.cov * inflate ** 2
+    evaluations = 0
     for round_ in range(1 + ADAPT_ROUNDS * int(adapt)):
-        draws, log_p, lw_s, khat = _importance_round(model, mean, cov, df, ndraws, rng)
-        w = np.exp(lw_s - np.max(lw_s))
-        w /= w.sum()
-        ess = float(1.0 / np.sum(w * w))
-        if round_ < ADAPT_ROUNDS and adapt and (khat > 0.5 or ess < min_ess) and ess > 2 * lap.mean.size:
-            # one round of moment matching: the weighted mean and covariance of the first round
-            # are a better proposal than the Laplace Gaussian when the posterior is skewed
-            mean = w @ draws
-            dev = draws - mean
-            cov = (dev * w[:, None]).T @ dev * inflate ** 2  # as the t scale, inflated: wider than the target
-            cov = 0.5 * (cov + cov.T)
+        draws, log_p, lw_raw = _t_draws(model, mean, cov, df, ndraws, rng)
+        evaluations += ndraws
+        w, ess, khat = _psis(lw_raw)
+        if round_ < ADAPT_ROUNDS and adapt and khat > 0.5 and ess > 2 * lap.mean.size:
+            # moment matching: the weighted mean and covariance of this round are a better proposal
+            # than the Laplace Gaussian when the posterior is skewed
+            new_mean = w @ draws
+            dev = draws - new_mean
+            new_cov = (dev * w[:, None]).T @ dev * inflate ** 2  # as the t scale, inflated: wider than the target
+            new_cov = 0.5 * (new_cov + new_cov.T)
             try:
-                np.linalg.cholesky(cov)
+                np.linalg.cholesky(new_cov)
             except np.linalg.LinAlgError:
                 break
+            mean, cov = new_mean, new_cov
         else:
             break
+    # pooling: more draws from the same proposal while the weights are trustworthy but too few are effective
+    step = max(ndraws // 2, 1)
+    while ess < min_ess and khat <= IS_KHAT_MAX and draws.shape[0] + step <= max_draws:
+        more, more_p, more_lw = _t_draws(model, mean, cov, df, step, rng)
+        evaluations += step
+        draws = np.concatenate([draws, more])
+        log_p = np.concatenate([log_p, more_p])
+        lw_raw = np.concatenate([lw_raw, more_lw])
+        w, ess, khat = _psis(lw_raw)
     issued = []
     # systematic resampling: nout equally spaced points through the cumulative weights
     u = (rng.random() + np.arange(nout)) / nout
-    idx = np.minimum(np.searchsorted(np.cumsum(w), u), ndraws - 1)
+    idx = np.minimum(np.searchsorted(np.cumsum(w), u), draws.shape[0] - 1)
     converged = khat <= IS_KHAT_MAX and ess >= min_ess
     if not converged:
         issued.append(f"importance sampling from the Laplace approximation: Pareto k-hat = {khat:.2f} "
-                      f"(trusted <= {IS_KHAT_MAX}), ESS = {ess:.0f} of {ndraws} (wanted >= {min_ess:.0f})")
-    diag = ImportanceDiagnostics(khat=khat, ess=ess, ndraws=ndraws, nout=nout, df=float(df), min_ess=float(min_ess),
-                                 converged=bool(converged), warnings=issued, seconds=time.perf_counter() - t0)
+                      f"(trusted <= {IS_KHAT_MAX}), ESS = {ess:.0f} of {draws.shape[0]} (wanted >= {min_ess:.0f})")
+    diag = ImportanceDiagnostics(khat=khat, ess=ess, ndraws=evaluations, nout=nout, df=float(df),
+                                 min_ess=float(min_ess), converged=bool(converged), warnings=issued,
+                                 seconds=time.perf_counter() - t0)
     return PosteriorSamples(samples=draws[idx].copy(), chain=draws[:, None, :], log_prob=log_p[:, None],
                             diagnostics=diag)
 
@@ -961,8 +991,8 @@ def fit(model, *, seed: int, sample: bool = True, nstarts: int = 6, min_ess: flo
     sampler : {"emcee", "importance", "auto"}
         ``emcee`` (the reference), ``importance``
         (:func:`importance_posterior` from the Laplace approximation, asking
-        for an effective sample size of ``min(min_ess, IS_MIN_ESS)`` and
-        drawing four times more proposals (8000) once if that falls short), or
+        for an effective sample size of ``min(min_ess, IS_MIN_ESS)``, pooling
+        up to :data:`IS_MAX_DRAWS` proposal draws if that falls short), or
         ``auto``: importance sampling, and emcee when its Pareto k-hat or
         effective sample size still fails (:data:`IS_KHAT_MAX`), to ESS
         ``min(min_ess, IS_MIN_ESS)`` in at most :data:`FALLBACK_MAX_STEPS`
@@ -986,10 +1016,6 @@ def fit(model, *, seed: int, sample: bool = True, nstarts: int = 6, min_ess: flo
     if sample and sampler in ("importance", "auto"):
         is_ess = min(min_ess, IS_MIN_ESS)
         post = importance_posterior(model, lap, seed=seed, min_ess=is_ess)
-        if not post.diagnostics.converged and post.diagnostics.khat <= IS_KHAT_MAX:
-            # enough overlap, too few effective draws: four times more proposal draws
-            post = importance_posterior(model, lap, seed=int_seed_for(seed, "importance-more"), ndraws=8000,
-                                        min_ess=is_ess)
         if sampler == "auto" and not post.diagnostics.converged:
             note = post.diagnostics.warnings[-1] + "; sampled with emcee instead"
             # bounded fallback: ESS 400 (as for importance sampling) and at most FALLBACK_MAX_STEPS steps; a

@@ -1424,8 +1424,20 @@ class CompletenessModel:
         over all walkers when the number of cells G is large).
         """
         t = self.full(self._thetas(thetas))
-        batch = int(max(1, min(t.shape[0], BATCH_ELEMENTS // max(1, self._data[0].shape[0]))))
-        return np.asarray(_jit_log_prob_batch(self._st, jnp.asarray(t), self._data, self._prior, batch))
+        w = t.shape[0]
+        # rows in blocks of one fixed size (a power of two, at most LOG_PROB_ROWS): one compiled shape serves
+        # importance-sampling batches of any length; emcee's fixed walker count gets its own
+        rows = min(LOG_PROB_ROWS, 1 << max(0, int(math.ceil(math.log2(max(w, 1))))))
+        batch = int(max(1, min(rows, BATCH_ELEMENTS // max(1, self._data[0].shape[0]))))
+        out = np.empty(w)
+        for start in range(0, w, rows):
+            block = t[start:start + rows]
+            nb = block.shape[0]
+            if nb < rows:
+                block = np.concatenate([block, np.repeat(block[-1:], rows - nb, axis=0)])
+            out[start:start + nb] = np.asarray(_jit_log_prob_batch(self._st, jnp.asarray(block), self._data,
+                                                                   self._prior, batch))[:nb]
+        return out
 
     def hessian(self, theta) -> np.ndarray:
         """Hessian of :meth:`log_prob`, shape (ndim, ndim)."""
@@ -1651,6 +1663,11 @@ class CompletenessModel:
         detections, separated outcomes, a handful of injections), where it
         lands on the prior-preferred edge.
         """
+        if getattr(self, "_initial", None) is None:
+            self._initial = self._grid_initial()
+        return self._initial.copy()
+
+    def _grid_initial(self) -> np.ndarray:
         data = self.data
         m = data.cov.m
         lo, hi = float(m.min()), float(m.max())
@@ -1702,6 +1719,9 @@ class CompletenessModel:
                 params[name] = pa[fn.index(name)]
         return self.inverse_transform(params)
 
+
+#: Rows of parameter vectors per compiled call of :meth:`CompletenessModel.log_prob_batch`.
+LOG_PROB_ROWS = 1024
 
 #: Smoothness scale of the spline's random walk before it is chosen by the evidence
 #: (:func:`comest_bayes.selection.choose_tau`), per unit of standardised magnitude.

@@ -31,6 +31,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import warnings
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -45,6 +46,9 @@ __all__ = ["CompletenessPosterior", "Footprint", "ExtrapolationWarning", "averag
 
 #: Largest number of (draw, position, magnitude) values evaluated at once by image averages.
 AVERAGE_ELEMENTS = 4_000_000
+
+#: Pixels per block of rows that :meth:`Footprint.from_maps` groups at a time (bounds its memory).
+FOOTPRINT_CHUNK = 1 << 20
 
 #: Percentiles reported for the 68% and 95% bands.
 BANDS = (2.5, 16.0, 50.0, 84.0, 97.5)
@@ -97,29 +101,46 @@ class Footprint:
         """
         mask = np.asarray(mask, bool)
         ny, nx = mask.shape
-        jj, ii = np.nonzero(~mask)
-        if jj.size == 0:
+        use_noise = noise is not None and bool(sigma_ref)
+        if use_noise:
+            noise = np.asarray(noise)
+            if noise.shape != mask.shape:
+                raise InputError(f"noise map {noise.shape} and mask {mask.shape} differ in shape.")
+        rows = max(1, FOOTPRINT_CHUNK // max(nx, 1))
+
+        def chunks():
+            # (row offset, unmasked rows/columns, depth) of blocks of rows: small arrays, no full-image copies
+            for j0 in range(0, ny, rows):
+                good = ~mask[j0:j0 + rows]
+                jj, ii = np.nonzero(good)
+                depth = np.zeros(jj.size)
+                if use_noise:
+                    sig = noise[j0:j0 + rows][good].astype(np.float64)
+                    ok = np.isfinite(sig) & (sig > 0)
+                    depth[ok] = -2.5 * np.log10(sig[ok] / float(sigma_ref))
+                yield jj + j0, ii, depth
+
+        npix, dmin, dmax = 0, np.inf, -np.inf
+        for _, ii, depth in chunks():
+            if ii.size:
+                npix += ii.size
+                dmin, dmax = min(dmin, float(depth.min())), max(dmax, float(depth.max()))
+        if npix == 0:
             raise InputError("the mask leaves no unmasked pixel to average over.")
-        u = 2.0 * ii / max(nx - 1, 1) - 1.0
-        v = 2.0 * jj / max(ny - 1, 1) - 1.0
-        depth = np.zeros(jj.size)
-        if noise is not None and sigma_ref:
-            sig = np.asarray(noise, np.float64)[jj, ii]
-            good = np.isfinite(sig) & (sig > 0)
-            depth[good] = -2.5 * np.log10(sig[good] / float(sigma_ref))
-        key = np.floor((depth - depth.min()) / ddepth).astype(np.int64)
-        if nuv > 1:
-            bu = np.clip(np.floor((u + 1.0) * 0.5 * nuv), 0, nuv - 1).astype(np.int64)
-            bv = np.clip(np.floor((v + 1.0) * 0.5 * nuv), 0, nuv - 1).astype(np.int64)
-            key = (key * nuv + bu) * nuv + bv
-        _, index = np.unique(key, return_inverse=True)
-        index = index.ravel()
-        n = np.bincount(index).astype(np.float64)
-
-        def mean(x):
-            return np.bincount(index, weights=x) / n
-
-        return cls(depth=mean(depth), u=mean(u), v=mean(v), weight=n / n.sum(), npix=int(jj.size))
+        # integer keys over a dense range, so the cells come from bincount (linear time, no sort)
+        size = (int(np.floor((dmax - dmin) / ddepth)) + 1) * nuv * nuv
+        n, sd, su, sv = (np.zeros(size) for _ in range(4))
+        for jj, ii, depth in chunks():
+            key = np.floor((depth - dmin) / ddepth).astype(np.int64)
+            if nuv > 1:
+                key = (key * nuv + np.minimum(ii * nuv // nx, nuv - 1)) * nuv + np.minimum(jj * nuv // ny, nuv - 1)
+            n += np.bincount(key, minlength=size)
+            sd += np.bincount(key, weights=depth, minlength=size)
+            su += np.bincount(key, weights=2.0 * ii / max(nx - 1, 1) - 1.0, minlength=size)
+            sv += np.bincount(key, weights=2.0 * jj / max(ny - 1, 1) - 1.0, minlength=size)
+        used = n > 0
+        n = n[used]
+        return cls(depth=sd[used] / n, u=su[used] / n, v=sv[used] / n, weight=n / n.sum(), npix=npix)
 
     @classmethod
     def from_points(cls, x, y, noise, sigma_ref: float | None, shape) -> "Footprint":
@@ -215,14 +236,15 @@ def coarse_noise_map(noise: np.ndarray, mask: np.ndarray, step: int = 32) -> np.
     """Median noise sigma in ``step`` x ``step`` blocks (NaN where all masked)."""
     ny, nx = noise.shape
     gy, gx = -(-ny // step), -(-nx // step)
-    out = np.full((gy, gx), np.nan)
-    for j in range(gy):
-        for i in range(gx):
-            blk = noise[j * step:(j + 1) * step, i * step:(i + 1) * step]
-            good = ~mask[j * step:(j + 1) * step, i * step:(i + 1) * step] & np.isfinite(blk) & (blk > 0)
-            if good.any():
-                out[j, i] = float(np.median(blk[good]))
-    return out
+    # pad to whole blocks with NaN, then one median per block over its good pixels
+    padded = np.full((gy * step, gx * step), np.nan, dtype=np.float32)
+    with np.errstate(invalid="ignore"):
+        good = ~np.asarray(mask, bool) & np.isfinite(noise) & (noise > 0)
+    padded[:ny, :nx] = np.where(good, noise, np.nan)
+    blocks = padded.reshape(gy, step, gx, step).transpose(0, 2, 1, 3).reshape(gy, gx, step * step)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)  # all-NaN blocks (fully masked) give NaN, as documented
+        return np.nanmedian(blocks, axis=-1).astype(np.float64)
 
 
 def footprint_sample(mask: np.ndarray, n: int, rng: np.random.Generator) -> np.ndarray:

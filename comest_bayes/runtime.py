@@ -60,11 +60,11 @@ def configure(threads: int | None = 1, *, cache: bool = True) -> None:
         except OSError:
             return
         os.environ.setdefault("JAX_COMPILATION_CACHE_DIR", str(path))
-        os.environ.setdefault("JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS", "0.2")
+        os.environ.setdefault("JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS", "0")
         import sys
 
         if "jax" in sys.modules:  # already imported: set the options directly
             import jax
 
             jax.config.update("jax_compilation_cache_dir", str(path))
-            jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.2)
+            jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.0)
