@@ -372,8 +372,12 @@ def _injection_stages(run: RunDirectory, image: ImageData, det: DetectionResult,
         kinds[kind] = kind_summary(merged, edges, config, nreal=len(done), maps_file=maps_name, map_edges=map_edges)
         kinds[kind]["seconds"] = {k: round(v, 2) for k, v in stage_seconds[kind].items()}
         c = kinds[kind]["counts"]
+        # a realization may draw no injection at all (small field, low density): a valid result
+        nempty = len(done) - len(np.unique(np.asarray(merged["injected"]["realization"]))) \
+            if len(merged["injected"]) else len(done)
         log(f"ratios: {kind}: {c['detected']}/{c['usable']} usable injections detected, {c['false']} false "
-            f"detections; binned m50 = {kinds[kind]['m50_binned'] if kinds[kind]['m50_binned'] is None else round(kinds[kind]['m50_binned'], 2)}")
+            f"detections; binned m50 = {kinds[kind]['m50_binned'] if kinds[kind]['m50_binned'] is None else round(kinds[kind]['m50_binned'], 2)}"
+            + (f"; {nempty} of {len(done)} realizations held no injection" if nempty else ""))
     timings["ratios"] = round(time.perf_counter() - t0, 3)
 
     # ---- the Bayesian completeness and purity models ---------------------------------

@@ -315,8 +315,13 @@ def match_realization(truth: Table, catalog: Table, baseline: Table, noise: np.n
     dets = catalog.copy(copy_data=False)
     dets.meta = {}
     dets["matched"] = res.det_matched
-    dets["injection_id"] = np.where(res.truth_of_det >= 0,
-                                    np.asarray(truth["injection_id"])[np.maximum(res.truth_of_det, 0)], -1)
+    # A realization may hold no injection at all (a small field at a low density draws zero from the
+    # Poisson distribution): every detection is then unmatched, and there is no id to look up.
+    ids = np.asarray(truth["injection_id"], dtype=np.int64)
+    injection_id = np.full(len(catalog), -1, dtype=np.int64)
+    hit = res.truth_of_det >= 0
+    injection_id[hit] = ids[res.truth_of_det[hit]]
+    dets["injection_id"] = injection_id
     dets["preexisting"] = cls.kept
     dets["near_unusable"] = near_unusable & ~cls.kept
     dets["false"] = cls.false & ~near_unusable

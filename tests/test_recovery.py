@@ -41,7 +41,7 @@ from comest_bayes.demo import MASK_GAP, make_demo_tile, write_demo_tile
 from comest_bayes.pipeline import ComputeOptions, ImageOptions, run_pipeline
 from comest_bayes.ratios import magnitude_edges
 from comest_bayes.recovery import OUTCOME_COLUMNS, merge_realizations, realization_file
-from conftest import matched_snr, tan_header, write_fits_file
+from conftest import make_synthetic_sky, matched_snr, render_point_sources, tan_header, write_fits_file
 
 # ---------------------------------------------------------------- the clean image
 SHAPE = (800, 800)
@@ -614,3 +614,67 @@ def test_a_base_image_with_nan_in_unmasked_pixels_fails_the_realization_clearly(
     result = recovery.run_realization(recovery.RealizationTask(ctx, "buldisk", 0))
     assert result.truth is None and "NaN or infinite values in unmasked pixels" in result.error
     assert "base.fits" in result.error
+
+
+# ---------------------------------------------------------------- realizations without injections
+
+
+def test_matching_an_empty_truth_table_makes_every_detection_false(tmp_path):
+    # A small field at a low density can draw zero injections; the detections of such a realization
+    # (here: noise peaks and sources of an image) must all come out unmatched and false, not crash.
+    from comest_bayes.config import InjectionConfig
+    from comest_bayes.detection import detect_array
+    from comest_bayes.injection import make_truth
+    from comest_bayes.seeding import rng_for
+
+    ctx, base, mask, sigma = _small_context(tmp_path)
+    truth = make_truth("point", shape=base.shape, mask=mask, pixel_scale=ctx.pixel_scale, fwhm_pix=ctx.fwhm,
+                       config=InjectionConfig(kinds=("point",), density=1e-6), mag_range=(18.0, 23.0),
+                       rng=rng_for(1, "inject", "point", 0), wcs=ctx.wcs, zeropoint=ctx.zeropoint)
+    assert len(truth) == 0  # premise: 1e-6 per arcmin^2 on 0.7 arcmin^2 draws nothing with this seed
+    sky = make_synthetic_sky(shape=base.shape, seed=3)
+    catalog = detect_array(sky.data, zeropoint=ZP).catalog
+    assert len(catalog) > 20
+    out, dets = recovery.match_realization(truth, catalog, catalog[:0], sigma, ctx)
+    assert len(out) == 0 and {"usable", "detected", "separation", "noise", "det_mag_auto"} <= set(out.colnames)
+    assert len(dets) == len(catalog)
+    assert not dets["matched"].any() and dets["false"].all() and not dets["preexisting"].any()
+    assert dets["injection_id"].dtype.kind == "i" and (dets["injection_id"] == -1).all()
+    # ... and the pair of tables is a valid realization file, merged as zero outcomes
+    out["realization"] = np.zeros(0, np.int32)
+    dets["realization"] = np.zeros(len(dets), np.int32)
+    recovery.write_realization(recovery.RealizationResult("point", 0, out, dets), tmp_path / "sims")
+    merged = merge_realizations(tmp_path / "sims", "point", [0])
+    assert len(merged["injected"]) == len(merged["outcomes"]) == 0 and len(merged["false"]) == len(catalog)
+    assert list(merged["outcomes"].colnames) == list(OUTCOME_COLUMNS)
+
+
+def test_realizations_without_injections_are_recorded_and_not_rerun(tmp_path):
+    # 0.0001 injections per arcmin^2 on a 200x200 image: every realization is empty, while the three
+    # stars kept on the bright-and-big image are detected in each of them (pre-existing sources).
+    shape = (200, 200)
+    header = tan_header(shape, PIXEL_SCALE)
+    header["MAGZERO"] = ZP
+    stars = render_point_sources(shape, [50.0, 150.0, 100.0], [60.0, 140.0, 100.0], [3e5, 2e5, 1e5], fwhm=FWHM)
+    data = (SKY + stars + np.random.default_rng(5).normal(0.0, SIGMA, shape)).astype(np.float32)
+    image = ImageOptions(path=str(write_fits_file(tmp_path / "image.fits", data, header)), fwhm=FWHM)
+    config = load_config(overrides=NOFIT + ["injection.kinds=point", "injection.nsims=3", "injection.density=0.0001",
+                                            "injection.mag_range=[18,24]", "injection.on=bnb",
+                                            "sourcefree.bnb_area_min=5"], seed=3)
+    out = tmp_path / "run"
+    lines = []
+    result = run_pipeline(image, config, out, log=lines.append, compute=SERIAL)
+    assert not any(s.startswith("warning: realization") for s in lines), lines
+    assert any("3 of 3 realizations held no injection" in s for s in lines), lines
+    assert result.summary["failed_realizations"] == []
+    counts = result.summary["kinds"]["point"]["counts"]
+    assert counts == {**counts, "realizations": 3, "injected": 0, "usable": 0, "detected": 0, "false": 0}
+    assert counts["preexisting"] == 3 * 3  # the kept stars, found again in every realization
+    for i in range(3):
+        with fits.open(realization_file(out / "sims", "point", i)) as hdul:
+            assert len(hdul["TRUTH"].data) == 0 and len(hdul["DETECTIONS"].data) == 3
+    assert len(_read(out / "catalogs" / "point_outcomes.fits")) == 0
+    # a rerun resumes: nothing is left to inject
+    lines = []
+    run_pipeline(image, config, out, log=lines.append, compute=SERIAL)
+    assert any("inject: all 3 realizations done earlier" in s for s in lines), lines
