@@ -521,6 +521,27 @@ def _section_from_mapping(section: str, cls, mapping: Mapping[str, Any], base=No
     return dataclasses.replace(base, **values)
 
 
+def _require_table(section: str, cls, value: Any, where: str) -> None:
+    """A section must be a table of settings, not a value (``detection = 5``)."""
+    if isinstance(value, Mapping):
+        return
+    example = fields(cls)[0]
+    raise ConfigError(
+        f"'{section}' {where} is a value ({value!r}), but it names a section of settings: write them under a "
+        f"[{section}] table, e.g. [{section}] then {example.name} = {_toml_value(example.default)}."
+    )
+
+
+def _toml_value(value: Any) -> str:
+    if isinstance(value, bool):
+        return "true" if value else "false"
+    if isinstance(value, str):
+        return f'"{value}"'
+    if isinstance(value, tuple):
+        return "[" + ", ".join(_toml_value(v) for v in value) + "]"
+    return repr(value)
+
+
 def parse_override(text: str) -> tuple[str, str, str]:
     """Split a ``section.key=value`` override into its three parts."""
     if "=" not in text or "." not in text.split("=", 1)[0]:
@@ -552,12 +573,20 @@ def load_config(path: str | Path | None = None, overrides: list[str] | Mapping |
     if path is not None:
         path = Path(path)
         if not path.is_file():
-            raise ConfigError(f"configuration file {str(path)!r} does not exist; check the --config path.")
+            what = "is a folder, not a file" if path.is_dir() else "does not exist"
+            raise ConfigError(f"configuration file {str(path)!r} {what}; check the --config path.")
         try:
-            data = tomllib.loads(path.read_text())
+            data = tomllib.loads(path.read_text(encoding="utf-8"))
         except tomllib.TOMLDecodeError as exc:
             raise ConfigError(f"configuration file {str(path)!r} is not valid TOML: {exc}.") from None
+        except UnicodeDecodeError:
+            raise ConfigError(f"configuration file {str(path)!r} is not a text file (not UTF-8); "
+                              f"give a TOML file.") from None
+        except OSError as exc:
+            raise ConfigError(f"configuration file {str(path)!r} cannot be read: {exc.strerror or exc}.") from None
 
+    for name, cls in _SECTIONS.items():
+        _require_table(name, cls, data.get(name, {}), f"in {str(path)!r}")
     merged: dict[str, dict] = {name: dict(data.get(name, {})) for name in _SECTIONS}
     top_seed = data.get("seed", 0)
     extra = set(data) - set(_SECTIONS) - {"seed"}
@@ -581,6 +610,7 @@ def load_config(path: str | Path | None = None, overrides: list[str] | Mapping |
             for section, table in items:
                 if section not in _SECTIONS:
                     raise ConfigError(f"unknown section {section!r}; valid sections: {sorted(_SECTIONS)}.")
+                _require_table(section, _SECTIONS[section], table, "in the overrides")
                 merged[section].update(table)
     sections = {name: _section_from_mapping(name, cls, merged[name]) for name, cls in _SECTIONS.items()}
     final_seed = seed if seed is not None else top_seed
