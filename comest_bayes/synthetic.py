@@ -605,7 +605,7 @@ def get_truth(truth) -> Truth:
 # outcomes
 # --------------------------------------------------------------------------
 
-def draw_outcomes(truth, scene: Scene, n: int, *, mag_range=None, seed: int) -> Table:
+def draw_outcomes(truth, scene: Scene, n: int | None = None, *, mag_range=None, seed: int, mags=None) -> Table:
     """Draw an injection outcome table from a known completeness.
 
     Parameters
@@ -618,6 +618,9 @@ def draw_outcomes(truth, scene: Scene, n: int, *, mag_range=None, seed: int) -> 
         Number of injections (>= 1).
     mag_range : (float, float), optional
         Magnitudes are uniform in it; default ``truth.default_mag_range()``.
+    mags : array, optional
+        The injected magnitudes themselves (e.g. drawn from an adaptive
+        design); ``n`` is then their number.
     seed : int
         Seed of the positions, magnitudes and outcomes.
 
@@ -634,6 +637,11 @@ def draw_outcomes(truth, scene: Scene, n: int, *, mag_range=None, seed: int) -> 
     truth = get_truth(truth)
     if not isinstance(scene, Scene):
         raise InputError(f"scene must be a Scene (see make_scene), got {type(scene).__name__}.")
+    if mags is not None:
+        mags = np.asarray(mags, dtype=np.float64).ravel()
+        if mags.size < 1 or not np.isfinite(mags).all():
+            raise InputError("mags must be a non-empty array of finite magnitudes.")
+        n = int(mags.size)
     if isinstance(n, bool) or not isinstance(n, (int, np.integer)) or n < 1:
         raise InputError(f"n = {n!r} must be a positive integer number of injections.")
     seed = _check_seed(seed)
@@ -645,7 +653,7 @@ def draw_outcomes(truth, scene: Scene, n: int, *, mag_range=None, seed: int) -> 
     # offsets in [-0.5, 0.5): floor(x + 0.5) is the drawn pixel, as the package looks it up
     x = ix + rng.random(n) - 0.5
     y = iy + rng.random(n) - 0.5
-    mag = rng.uniform(lo, hi, size=int(n))
+    mag = rng.uniform(lo, hi, size=int(n)) if mags is None else mags
     f = truth.prob(mag, d_all[pick], u_all[pick], v_all[pick])
     detected = rng.random(n) < f
     table = Table({"mag": mag, "detected": detected, "x": x, "y": y,

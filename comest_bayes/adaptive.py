@@ -1,0 +1,251 @@
+"""Sequential injection: batches whose magnitudes follow the current posterior, until a precision target.
+
+The loop of :func:`run_sequential` is independent of how injections are
+made: it asks a ``simulate(mags, batch)`` callable for the outcomes of a
+batch of magnitudes (the pipeline renders and detects them; the benchmarks
+and tests draw them from a known curve) and a ``fit(table, batch)``
+callable for the posterior of the accumulated outcomes.  Between batches it
+builds the next :class:`~comest_bayes.design.MagnitudeDesign` with
+:func:`comest_bayes.design.design_from_draws`.
+
+Reproducibility: the magnitudes of batch ``k`` come from the stream
+``(seed, "design", k)`` and the design built from the outcomes of batches
+``< k`` only, so the same seed gives the same batches whatever executes
+them, and a run resumed after batch ``k`` (its outcomes and designs
+recorded) continues exactly as an uninterrupted one.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+from astropy.table import Table, vstack
+
+from .design import DEFAULT_UNIFORM_SHARE, TARGETS, MagnitudeDesign, design_from_draws, uniform_design
+from .errors import InputError
+from .seeding import rng_for
+
+__all__ = ["AdaptiveSettings", "BatchRecord", "SequentialResult", "run_sequential", "PosteriorView"]
+
+
+@dataclass(frozen=True)
+class AdaptiveSettings:
+    """How a sequential design proceeds.
+
+    Attributes
+    ----------
+    precision : float
+        Target half-width of the 68% interval of the image-average m50 (mag).
+    pilot : int
+        Injections of the first (uniform) batch.
+    growth : float
+        Each later batch holds ``growth`` times the injections so far (at
+        least ``min_batch``): the number of refits grows only as the log of
+        the injections.
+    min_batch : int
+        Smallest batch.
+    max_injections : int
+        Stop here even if the precision is not reached (and say so).
+    uniform_share : float
+        Share of every adaptive batch drawn uniformly over the range.
+    target : {"m50", "curve"}
+        What the design aims at.
+    """
+
+    precision: float = 0.02
+    pilot: int = 1000
+    growth: float = 0.5
+    min_batch: int = 250
+    max_injections: int = 100_000
+    uniform_share: float = DEFAULT_UNIFORM_SHARE
+    target: str = "m50"
+
+    def __post_init__(self):
+        if not (self.precision > 0 and math.isfinite(self.precision)):
+            raise InputError(f"precision = {self.precision} must be a positive number of magnitudes.")
+        if self.pilot < 1 or self.min_batch < 1 or self.max_injections < self.pilot:
+            raise InputError(f"pilot ({self.pilot}), min_batch ({self.min_batch}) must be >= 1 and "
+                             f"max_injections ({self.max_injections}) >= pilot.")
+        if not self.growth > 0:
+            raise InputError(f"growth = {self.growth} must be positive.")
+        if not 0.0 <= self.uniform_share <= 1.0:
+            raise InputError(f"uniform_share = {self.uniform_share} must lie in [0, 1].")
+        if self.target not in TARGETS:
+            raise InputError(f"target must be one of {TARGETS}, got {self.target!r}.")
+
+    def batch_size(self, done: int) -> int:
+        """Injections of the next batch after ``done`` so far (the pilot first)."""
+        if done == 0:
+            return int(self.pilot)
+        size = max(int(self.min_batch), int(math.ceil(self.growth * done)))
+        return int(min(size, self.max_injections - done))
+
+
+@dataclass(frozen=True)
+class PosteriorView:
+    """What the design needs of a posterior: draws of the image-average curve on a grid and of m50."""
+
+    grid: np.ndarray
+    curves: np.ndarray   # (S, G)
+    m50: np.ndarray      # (S,)
+
+    @property
+    def m50_halfwidth(self) -> float:
+        """Half-width of the central 68% interval of m50 (inf when under half the draws define it)."""
+        ok = np.isfinite(self.m50)
+        if ok.mean() < 0.5:
+            return math.inf
+        lo, hi = np.percentile(self.m50[ok], [15.865, 84.135])
+        return float(0.5 * (hi - lo))
+
+    @property
+    def m50_median(self) -> float:
+        ok = np.isfinite(self.m50)
+        return float(np.median(self.m50[ok])) if ok.any() else math.nan
+
+
+@dataclass
+class BatchRecord:
+    """One batch: its design, size, and the precision reached after fitting everything up to it."""
+
+    index: int
+    n: int
+    total: int
+    design: MagnitudeDesign
+    m50: float
+    halfwidth: float
+    fit_seconds: float
+    simulate_seconds: float
+
+    def to_dict(self) -> dict:
+        return {"index": self.index, "n": self.n, "total": self.total, "design": self.design.to_dict(),
+                "m50": None if not math.isfinite(self.m50) else self.m50,
+                "halfwidth": None if not math.isfinite(self.halfwidth) else self.halfwidth,
+                "fit_seconds": round(self.fit_seconds, 3), "simulate_seconds": round(self.simulate_seconds, 3)}
+
+
+@dataclass
+class SequentialResult:
+    """Outcome of :func:`run_sequential`."""
+
+    table: Table
+    batches: list = field(default_factory=list)
+    reached: bool = False
+    reason: str = ""
+    posterior: object = None
+
+    def to_dict(self) -> dict:
+        return {"reached": self.reached, "reason": self.reason, "injections": len(self.table),
+                "batches": [b.to_dict() for b in self.batches]}
+
+
+def _stack(tables: list) -> Table:
+    return tables[0] if len(tables) == 1 else vstack(tables, metadata_conflicts="silent")
+
+
+def run_sequential(simulate, fit, lo: float, hi: float, settings: AdaptiveSettings, *, seed: int,
+                   log=lambda s: None, done: list | None = None) -> SequentialResult:
+    """Inject in batches, each designed from the posterior of the ones before, until the precision target.
+
+    Parameters
+    ----------
+    simulate : callable ``(mags, batch_index) -> Table``
+        Outcomes (at least ``mag`` and ``detected``) of injecting ``mags``.
+    fit : callable ``(table, batch_index) -> (PosteriorView, posterior)``
+        The posterior of all outcomes so far.
+    lo, hi : float
+        The injected magnitude range (every design lives on it).
+    settings : AdaptiveSettings
+    seed : int
+        Root seed; batch ``k`` draws its magnitudes from stream ``("design", k)``.
+    done : list of (Table, MagnitudeDesign), optional
+        Batches finished earlier (a resume): their outcomes are reused, not
+        simulated again; their designs must be what this loop would build
+        (they are, for the same seed and outcomes).
+
+    Returns
+    -------
+    SequentialResult
+    """
+    done = list(done or [])
+    tables, batches = [], []
+    design = uniform_design(lo, hi)
+    view, post, total = None, None, 0
+    reached, reason = False, ""
+    k = 0
+    while True:
+        n = settings.batch_size(total)
+        if n <= 0:
+            reason = f"stopped at the cap of {settings.max_injections} injections"
+            break
+        t0 = time.perf_counter()
+        if k < len(done):
+            table, recorded = done[k]
+            if not np.allclose(recorded.prob, design.prob, rtol=1e-9, atol=1e-12):
+                raise InputError(f"batch {k} was recorded with another design than this run builds: the earlier "
+                                 "run used other settings or outcomes; start a new output folder.")
+        else:
+            mags = design.sample(n, rng_for(seed, "design", k))
+            table = simulate(mags, k)
+        t_sim = time.perf_counter() - t0
+        tables.append(table)
+        total += len(table)
+        t1 = time.perf_counter()
+        view, post = fit(_stack(tables), k)
+        t_fit = time.perf_counter() - t1
+        rec = BatchRecord(index=k, n=len(table), total=total, design=design, m50=view.m50_median,
+                          halfwidth=view.m50_halfwidth, fit_seconds=t_fit, simulate_seconds=t_sim)
+        batches.append(rec)
+        log(f"design: batch {k} ({design.target}, {len(table)} injections, "
+            f"{100 * design.fraction_within(rec.m50 - 0.6, rec.m50 + 0.6) if math.isfinite(rec.m50) else 0:.0f}% "
+            f"within 0.6 mag of m50): {total} in all, m50 {rec.m50:.3f} +- {rec.halfwidth:.4f} "
+            f"(target {settings.precision})")
+        if rec.halfwidth <= settings.precision:
+            reached, reason = True, f"m50 half-width {rec.halfwidth:.4f} <= {settings.precision} after {total} injections"
+            break
+        if total >= settings.max_injections:
+            reason = (f"stopped at the cap of {settings.max_injections} injections with m50 half-width "
+                      f"{rec.halfwidth:.4f} > {settings.precision}")
+            break
+        k += 1
+        design = design_from_draws(view.grid, view.curves, lo, hi, target=settings.target, m50=view.m50,
+                                   uniform_share=settings.uniform_share)
+    table = _stack(tables)
+    return SequentialResult(table=table, batches=batches, reached=reached, reason=reason, posterior=post)
+
+
+def package_fitter(*, image_shape, noise, mask, lo: float, hi: float, seed: int, model: str = "auto",
+                   kind: str = "point", ngrid: int = 161, nsamples: int = 1000, mag_bin: float = 0.1):
+    """A ``fit`` callable for :func:`run_sequential` that runs the package's own completeness fit.
+
+    Each call fits every outcome so far with :func:`comest_bayes.fitting.fit_kind`
+    (``model``, default the ``auto`` selection; seed stream ``("design-fit", k)``)
+    and returns the :class:`PosteriorView` on ``ngrid`` magnitudes over
+    ``[lo, hi]`` and the ``(posterior, entry)`` pair.
+    """
+    import warnings
+
+    from . import ratios as R
+    from .config import RunConfig
+    from .fitting import fit_kind
+    from .seeding import int_seed_for
+
+    edges = R.magnitude_edges(lo, hi, mag_bin)
+    centers = 0.5 * (edges[:-1] + edges[1:])
+    grid = np.linspace(lo, hi, int(ngrid))
+
+    def fit(table, k):
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            post, entry = fit_kind(table, kind=kind, quantity="completeness", requested=model,
+                                   config=RunConfig(seed=int_seed_for(seed, "design-fit", k)),
+                                   image_shape=image_shape, noise=noise, mask=mask, wcs_header=None,
+                                   mag_range=(lo, hi), mag_centers=centers)
+            curves = post.average_curve(grid, nsamples=nsamples)
+            m50 = post.magnitudes_at((0.5,), nsamples=nsamples)[0.5]
+        return PosteriorView(grid=grid, curves=curves, m50=np.asarray(m50, float)), (post, entry)
+
+    return fit

@@ -1,0 +1,169 @@
+"""Adaptive magnitude designs: densities, draws, where the gain lies, and the sequential loop."""
+
+import math
+
+import numpy as np
+import pytest
+
+from comest_bayes.adaptive import AdaptiveSettings, PosteriorView, run_sequential
+from comest_bayes.design import MagnitudeDesign, design_from_draws, uniform_design, variance_reduction
+from comest_bayes.errors import InputError
+
+
+def logistic_draws(grid, m50=24.0, sd_m50=0.05, w=0.2, n=2000, seed=0):
+    """Posterior-like draws of a logistic curve whose m50 is uncertain (sd_m50) and width known."""
+    rng = np.random.default_rng(seed)
+    m = rng.normal(m50, sd_m50, n)
+    curves = 1.0 / (1.0 + np.exp((grid[None, :] - m[:, None]) / w))
+    return curves, m
+
+
+def test_uniform_design_is_flat_and_draws_inside_the_range():
+    d = uniform_design(20.0, 26.0)
+    np.testing.assert_allclose(d.density([20.5, 23.0, 25.9]), 1.0 / 6.0)
+    assert d.density([19.0, 26.5]).tolist() == [0.0, 0.0]
+    m = d.sample(5000, np.random.default_rng(1))
+    assert m.min() >= 20.0 and m.max() <= 26.0
+    assert d.fraction_within(23.0, 24.2) == pytest.approx(0.2)
+
+
+def test_draws_follow_the_design_probabilities():
+    # 20000 draws from a two-level density: bin counts within 4 binomial sigma of their expectation
+    edges = np.linspace(0.0, 1.0, 5)
+    d = MagnitudeDesign(edges, np.array([0.1, 0.4, 0.4, 0.1]), target="m50", uniform_share=0.0)
+    m = d.sample(20000, np.random.default_rng(2))
+    counts, _ = np.histogram(m, edges)
+    expect = 20000 * d.prob
+    assert np.all(np.abs(counts - expect) < 4 * np.sqrt(expect * (1 - d.prob)))
+    # same generator state, same magnitudes
+    np.testing.assert_array_equal(d.sample(10, np.random.default_rng(3)), d.sample(10, np.random.default_rng(3)))
+
+
+def test_the_m50_gain_sits_at_m50_and_vanishes_on_the_plateau():
+    # For a logistic of known width whose m50 is uncertain, an injection at m changes the m50 posterior by
+    # Cov(m50, f(m))^2 / (p(1-p)) ~ f'(m)^2 Var(m50)^2 / (f(1-f)), which is symmetric about m50 and largest
+    # within a width or two of it; on the plateau (5 widths away) it is negligible.
+    grid = np.linspace(21.0, 27.0, 601)
+    curves, m = logistic_draws(grid)
+    gain = variance_reduction(grid, curves, target="m50", m50=m)
+    peak = grid[np.argmax(gain)]
+    assert abs(peak - 24.0) < 0.3
+    assert gain[np.abs(grid - 22.0) < 0.05].max() < 1e-3 * gain.max()  # 10 widths: ~4 e^-10 of the peak
+    # the linearised gain at m50 itself: f' = -1/(4w), p = 1/2 -> Var(m50)^2 / (16 w^2) / (1/4) = Var^2/(4 w^2)
+    expected = (0.05 ** 2) ** 2 / (4 * 0.2 ** 2)
+    assert gain[np.argmin(np.abs(grid - 24.0))] == pytest.approx(expected, rel=0.25)
+
+
+def test_the_curve_gain_covers_the_transition():
+    grid = np.linspace(21.0, 27.0, 301)
+    curves, m = logistic_draws(grid, sd_m50=0.1)
+    gain = variance_reduction(grid, curves, target="curve")
+    inside = np.abs(grid - 24.0) < 0.4
+    assert gain[inside].min() > 0.1 * gain.max()
+    assert gain[np.abs(grid - 24.0) > 2.0].max() < 1e-2 * gain.max()
+
+
+def test_design_keeps_its_uniform_share_everywhere():
+    grid = np.linspace(21.0, 27.0, 301)
+    curves, m = logistic_draws(grid)
+    d = design_from_draws(grid, curves, 21.0, 27.0, target="m50", m50=m, uniform_share=0.15)
+    assert d.prob.sum() == pytest.approx(1.0)
+    # far from m50 the density is the uniform share alone: 0.15 / 6 mag
+    assert d.density([21.1, 26.9]) == pytest.approx([0.15 / 6.0, 0.15 / 6.0], rel=1e-3)
+    # most of the rest lies near m50
+    assert d.fraction_within(23.5, 24.5) > 0.7
+    # a posterior no injection can sharpen (every draw identical) gives the uniform design
+    flat = design_from_draws(grid, np.repeat(curves[:1], 10, axis=0), 21.0, 27.0, target="curve")
+    np.testing.assert_allclose(flat.prob, uniform_design(21.0, 27.0).prob)
+
+
+def test_bad_design_inputs_are_refused():
+    with pytest.raises(InputError, match="increasing"):
+        MagnitudeDesign(np.array([1.0, 1.0]), np.array([1.0]))
+    with pytest.raises(InputError, match="target"):
+        variance_reduction(np.arange(3.0), np.ones((4, 3)), target="m90")
+    with pytest.raises(InputError, match="m50"):
+        variance_reduction(np.arange(3.0), np.ones((4, 3)), target="m50")
+    with pytest.raises(InputError, match="precision"):
+        AdaptiveSettings(precision=0.0)
+    with pytest.raises(InputError, match="uniform_share"):
+        AdaptiveSettings(uniform_share=1.5)
+
+
+# --------------------------------------------------------------------------- the sequential loop
+
+
+def _binomial_fitter(lo, hi, w=0.2):
+    """An exact posterior for a logistic of known width and a flat prior on m50 (grid over m50).
+
+    Lets the loop be tested without the package's fit: a known-answer posterior whose draws the design uses.
+    """
+    m50_grid = np.linspace(lo, hi, 3001)
+    mag_grid = np.linspace(lo, hi, 161)
+
+    def fit(table, k):
+        m = np.asarray(table["mag"], float)
+        y = np.asarray(table["detected"], bool)
+        f = 1.0 / (1.0 + np.exp((m[None, :] - m50_grid[:, None]) / w))
+        f = np.clip(f, 1e-12, 1 - 1e-12)
+        ll = np.where(y[None, :], np.log(f), np.log1p(-f)).sum(axis=1)
+        p = np.exp(ll - ll.max())
+        p /= p.sum()
+        rng = np.random.default_rng(1000 + k)
+        draws = rng.choice(m50_grid, size=1000, p=p) + rng.uniform(-0.001, 0.001, 1000)
+        curves = 1.0 / (1.0 + np.exp((mag_grid[None, :] - draws[:, None]) / w))
+        return PosteriorView(grid=mag_grid, curves=curves, m50=draws), draws
+
+    return fit
+
+
+def _simulator(m50=24.0, w=0.2, seed=0):
+    from astropy.table import Table
+
+    def simulate(mags, k):
+        rng = np.random.default_rng([seed, k])
+        f = 1.0 / (1.0 + np.exp((mags - m50) / w))
+        return Table({"mag": mags, "detected": rng.random(mags.size) < f})
+
+    return simulate
+
+
+def test_sequential_design_reaches_the_target_with_few_injections_and_is_reproducible():
+    settings = AdaptiveSettings(precision=0.01, pilot=400, min_batch=200, max_injections=20000)
+    res = run_sequential(_simulator(), _binomial_fitter(21.0, 27.0), 21.0, 27.0, settings, seed=9)
+    assert res.reached and res.batches[-1].halfwidth <= 0.01
+    # The Fisher information of one injection at m about m50 is f(1-f)/w^2; averaged uniformly over 6 mag it is
+    # w/(6 w^2) = 1/(6 w) per injection -> N_uniform = 6 w / 0.01^2 = 12000 for sd 0.01.  The design density
+    # ~ f(1-f) (85%) + uniform (15%) carries 0.85/(6 w^2) + 0.15/(6 w) = 3.7 per injection -> ~2700, plus the
+    # uniform pilot and the overshoot of the last batch (growth 0.5).  It must use under half of uniform's.
+    assert len(res.table) < 6000
+    assert res.batches[0].design.target == "uniform" and res.batches[1].design.target == "m50"
+    again = run_sequential(_simulator(), _binomial_fitter(21.0, 27.0), 21.0, 27.0, settings, seed=9)
+    np.testing.assert_array_equal(np.asarray(again.table["mag"]), np.asarray(res.table["mag"]))
+
+
+def test_a_resumed_sequence_continues_exactly_and_refuses_a_different_history():
+    settings = AdaptiveSettings(precision=0.01, pilot=400, min_batch=200, max_injections=20000)
+    full = run_sequential(_simulator(), _binomial_fitter(21.0, 27.0), 21.0, 27.0, settings, seed=4)
+    # the first two batches as recorded by an interrupted run (their outcome tables and designs)
+    bounds = np.cumsum([0] + [b.n for b in full.batches])
+    done = [(full.table[bounds[i]:bounds[i + 1]], full.batches[i].design) for i in range(2)]
+    calls = []
+
+    def counting(mags, k):
+        calls.append(k)
+        return _simulator()(mags, k)
+
+    resumed = run_sequential(counting, _binomial_fitter(21.0, 27.0), 21.0, 27.0, settings, seed=4, done=done)
+    assert 0 not in calls and 1 not in calls  # finished batches are not injected again
+    np.testing.assert_array_equal(np.asarray(resumed.table["mag"]), np.asarray(full.table["mag"]))
+    wrong = [(done[0][0], done[0][1]), (done[1][0], uniform_design(21.0, 27.0))]
+    with pytest.raises(InputError, match="another design"):
+        run_sequential(counting, _binomial_fitter(21.0, 27.0), 21.0, 27.0, settings, seed=4, done=wrong)
+
+
+def test_the_cap_stops_the_loop_and_says_so():
+    settings = AdaptiveSettings(precision=0.0001, pilot=300, min_batch=100, max_injections=900)
+    res = run_sequential(_simulator(), _binomial_fitter(21.0, 27.0), 21.0, 27.0, settings, seed=1)
+    assert not res.reached and len(res.table) == 900 and "cap of 900" in res.reason
+    assert math.isfinite(res.batches[-1].halfwidth)
