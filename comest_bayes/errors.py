@@ -16,6 +16,7 @@ __all__ = [
     "DetectionOverflowError",
     "BackendUnavailableError",
     "RunDirectoryError",
+    "OutputWriteError",
 ]
 
 
@@ -45,3 +46,7 @@ class BackendUnavailableError(ComestError, RuntimeError):
 
 class RunDirectoryError(ComestError, RuntimeError):
     """The output directory holds a different run, or cannot be written."""
+
+
+class OutputWriteError(ComestError, OSError):
+    """The operating system refused to write an output file (disk full, read-only, quota)."""

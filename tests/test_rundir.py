@@ -2,13 +2,14 @@
 
 import json
 import os
+from pathlib import Path
 
 import numpy as np
 import pytest
 from astropy.table import Table
 
-from comest_bayes.errors import RunDirectoryError
-from comest_bayes.rundir import RunDirectory, atomic_path, file_checksum
+from comest_bayes.errors import OutputWriteError, RunDirectoryError
+from comest_bayes.rundir import RunDirectory, atomic_path, check_writable, file_checksum
 from comest_bayes.seeding import int_seed_for, rng_for, seed_sequence
 
 
@@ -96,3 +97,128 @@ def test_seed_streams_depend_only_on_root_and_name():
     assert int_seed_for(7, "x") == int_seed_for(7, "x") > 0
     with pytest.raises(ValueError, match="non-negative"):
         seed_sequence(-1)
+
+
+# ---------------------------------------------------------------- leftovers, lock, writability, write errors
+
+
+def test_temporary_files_in_every_subfolder_are_cleaned_on_resume(tmp_path):
+    RunDirectory(tmp_path, {"x": 1}).open().release()
+    left = [tmp_path / "catalogs" / ".tmp-77-point_matched.fits", tmp_path / "sims" / "point" / ".tmp-77-r00001.fits",
+            tmp_path / "maps" / ".tmp-77-point_maps.fits", tmp_path / "inputs" / ".tmp-77-abc-demo_image.fits"]
+    for path in left:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        path.write_text("partial")
+    kept = tmp_path / "catalogs" / "point_matched.fits"
+    kept.write_text("complete")
+    RunDirectory(tmp_path, {"x": 1}).open().release()
+    assert [p for p in left if p.exists()] == []
+    assert kept.read_text() == "complete"
+
+
+def _hold_lock_in_another_process(path):
+    """A second Python process that opens the run and waits; returns it once it holds the lock."""
+    import subprocess
+    import sys
+
+    code = ("import sys, time\nfrom comest_bayes.rundir import RunDirectory\n"
+            f"RunDirectory({str(path)!r}, {{'x': 1}}).open()\nprint('ready', flush=True)\ntime.sleep(120)\n")
+    proc = subprocess.Popen([sys.executable, "-c", code], stdout=subprocess.PIPE, text=True)
+    assert proc.stdout.readline().strip() == "ready"
+    return proc
+
+
+def test_a_live_run_holds_the_directory_and_its_lock_is_taken_over_once_it_is_killed(tmp_path):
+    import signal
+    import socket
+
+    out = tmp_path / "run"
+    proc = _hold_lock_in_another_process(out)
+    try:
+        lock = json.loads((out / "run.lock").read_text())
+        assert lock["pid"] == proc.pid and lock["host"] == socket.gethostname()
+        before = (out / "run.json").read_bytes()
+        with pytest.raises(RunDirectoryError, match=rf"in use by another comest-bayes run \(process {proc.pid} on "
+                                                    rf"{socket.gethostname()}"):
+            RunDirectory(out, {"x": 1}).open()
+        # a run with another fingerprint is told the directory is in use, too; nothing changed
+        with pytest.raises(RunDirectoryError, match=f"process {proc.pid}"):
+            RunDirectory(out, {"x": 2}).check()
+        assert (out / "run.json").read_bytes() == before
+    finally:
+        proc.send_signal(signal.SIGKILL)
+        proc.wait()
+        proc.stdout.close()
+    run = RunDirectory(out, {"x": 1}).open()  # the holder is dead: the stale lock is taken over, with a note
+    assert run.resumed
+    assert f"process {proc.pid}" in run.lock_note and "no longer running" in run.lock_note
+    assert json.loads((out / "run.lock").read_text())["pid"] == os.getpid()
+    run.release()
+    assert not (out / "run.lock").exists()
+
+
+def test_the_lock_is_reentrant_in_one_process_and_released(tmp_path):
+    first = RunDirectory(tmp_path, {"x": 1}).open()
+    second = RunDirectory(tmp_path, {"x": 1}).open()  # e.g. a notebook opening the same run again
+    assert second.lock_note is None
+    second.release()
+    assert not (tmp_path / "run.lock").exists()
+    first.release()  # already gone: no error
+
+
+def test_a_lock_left_without_run_json_does_not_make_the_directory_foreign(tmp_path):
+    import socket
+
+    (tmp_path / "run.lock").write_text(json.dumps({"pid": 2 ** 22 + 12345, "host": socket.gethostname()}))
+    run = RunDirectory(tmp_path, {"x": 1}).open()
+    assert not run.resumed and "no longer running" in run.lock_note
+    run.release()
+
+
+def _unwritable_folder(tmp_path):
+    if os.geteuid() != 0:
+        folder = tmp_path / "ro"
+        folder.mkdir()
+        folder.chmod(0o500)
+        return folder
+    sysfs = Path("/sys")
+    if sysfs.is_dir():  # root may not create entries in sysfs either
+        try:
+            (sysfs / "comest-bayes-probe").mkdir()
+        except OSError:
+            return sysfs
+        (sysfs / "comest-bayes-probe").rmdir()
+    pytest.skip("no folder this user cannot write to")
+
+
+def test_an_unwritable_out_is_refused_before_anything_is_written(tmp_path):
+    folder = _unwritable_folder(tmp_path)
+    before = sorted(p.name for p in folder.iterdir())
+    with pytest.raises(RunDirectoryError, match="is not writable.*Nothing was written"):
+        RunDirectory(folder / "comest-run" / "deeper", {"x": 1}).check()
+    assert sorted(p.name for p in folder.iterdir()) == before
+
+
+def test_check_writable_leaves_no_probe_behind(tmp_path):
+    check_writable(tmp_path / "new" / "run")
+    check_writable(tmp_path)
+    assert list(tmp_path.iterdir()) == []
+
+
+@pytest.mark.parametrize("error, reason", [
+    (OSError(28, "No space left on device"), "No space left on device"),
+    # astropy reports a full disk without an errno, in several sentences
+    (OSError("Not enough space on disk: requested 160000, available 0. Not enough space on disk: requested "
+             "160000, available 0. 40000 requested and 15664 written"), "Not enough space on disk: requested 160000"),
+])
+def test_a_refused_write_names_the_file_and_the_reason_on_one_line(tmp_path, error, reason):
+    target = tmp_path / "catalogs" / "point_matched.fits"
+    target.parent.mkdir()
+    with pytest.raises(OutputWriteError) as info:
+        with atomic_path(target) as tmp:
+            tmp.write_text("half")
+            raise error
+    text = str(info.value)
+    assert text.startswith(f"could not write {str(target)!r}: {reason}") and "\n" not in text
+    assert isinstance(info.value, OSError)
+    assert list(target.parent.iterdir()) == []  # no temporary file left
