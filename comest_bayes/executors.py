@@ -9,12 +9,23 @@ interrupted run loses at most the tasks in flight.
 Local processes are started with ``forkserver`` (``spawn`` where that is not
 available), never ``fork``: forking a process after JAX or a threaded BLAS has
 started is unsafe.
+
+Workers exit with the process that started them: killing only the main
+process (``kill PID``, an out-of-memory kill) must not leave workers
+computing for nobody.  Each worker asks Linux to kill it when its parent (the
+fork server) dies (``prctl(PR_SET_PDEATHSIG)``; the fork server exits when the
+main process is gone), and a watchdog thread checks every
+:data:`PARENT_POLL_SECONDS` that the main process still runs (any platform).
 """
 
 from __future__ import annotations
 
 import multiprocessing as mp
 import os
+import signal
+import sys
+import threading
+import time
 from concurrent.futures import ProcessPoolExecutor, as_completed
 from typing import Any, Callable, Iterable, Sequence
 
@@ -37,6 +48,49 @@ def _progress(total: int, desc: str, enabled: bool):
     from tqdm.auto import tqdm
 
     return tqdm(total=total, desc=desc, unit="task", disable=not enabled or total == 0, leave=False)
+
+
+#: How often (seconds) a worker checks that the main process still runs.
+PARENT_POLL_SECONDS = 1.0
+_PR_SET_PDEATHSIG = 1
+
+
+def _alive(pid: int) -> bool:
+    """True while process ``pid`` runs (a killed process not yet reaped by its parent counts as gone)."""
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:
+        return True
+    try:
+        with open(f"/proc/{pid}/stat") as fh:
+            return fh.read().rsplit(")", 1)[-1].split()[0] != "Z"
+    except (OSError, IndexError):
+        return True
+
+
+def _die_with_parent(main_pid: int) -> None:
+    """Worker initializer: end this worker when the main process ``main_pid`` is gone."""
+    if sys.platform.startswith("linux"):
+        try:
+            import ctypes
+
+            libc = ctypes.CDLL(None, use_errno=True)
+            libc.prctl(_PR_SET_PDEATHSIG, signal.SIGKILL, 0, 0, 0)
+        except (OSError, AttributeError):  # no prctl: the watchdog below still works
+            pass
+    parent = os.getppid()
+
+    def watch():
+        while True:
+            time.sleep(PARENT_POLL_SECONDS)
+            if not _alive(main_pid) or os.getppid() != parent:
+                os._exit(1)  # nobody waits for this worker's results; no clean-up to run
+
+    threading.Thread(target=watch, name="comest-bayes-parent-watch", daemon=True).start()
+    if not _alive(main_pid):  # died before the watch began
+        os._exit(1)
 
 
 def _mp_context():
@@ -78,7 +132,8 @@ def run_tasks(fn: Callable[[Any], Any], tasks: Sequence, *, on_result: Callable[
                 on_result(task, fn(task))
                 bar.update()
         elif executor == "processes":
-            with ProcessPoolExecutor(max_workers=min(workers, len(tasks)), mp_context=_mp_context()) as pool:
+            with ProcessPoolExecutor(max_workers=min(workers, len(tasks)), mp_context=_mp_context(),
+                                     initializer=_die_with_parent, initargs=(os.getpid(),)) as pool:
                 futures = {pool.submit(fn, task): task for task in tasks}
                 try:
                     for fut in as_completed(list(futures)):

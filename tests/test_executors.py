@@ -1,0 +1,71 @@
+"""Executors: worker processes end with the process that started them."""
+
+import os
+import signal
+import subprocess
+import sys
+import textwrap
+import time
+
+import pytest
+
+from comest_bayes.executors import run_tasks
+
+pytestmark = pytest.mark.skipif(not sys.platform.startswith("linux"), reason="reads process states from /proc")
+
+
+def _running(pid: int) -> bool:
+    """True while ``pid`` exists and is not a zombie (a finished process its parent has not reaped)."""
+    try:
+        with open(f"/proc/{pid}/stat") as fh:
+            return fh.read().rsplit(")", 1)[-1].split()[0] != "Z"
+    except OSError:
+        return False
+
+
+def test_workers_exit_when_only_the_main_process_is_killed(tmp_path):
+    marks = tmp_path / "pids"
+    marks.mkdir()
+    (tmp_path / "slow_task.py").write_text(textwrap.dedent('''
+        import os, time
+
+        def task(folder):
+            open(os.path.join(folder, str(os.getpid())), "w").close()
+            time.sleep(300)
+    '''))
+    main = textwrap.dedent(f'''
+        import slow_task
+        from comest_bayes.executors import run_tasks
+        run_tasks(slow_task.task, [{str(marks)!r}] * 2, on_result=lambda t, r: None, executor="processes", workers=2)
+    ''')
+    env = dict(os.environ, PYTHONPATH=os.pathsep.join([str(tmp_path), os.environ.get("PYTHONPATH", "")]))
+    proc = subprocess.Popen([sys.executable, "-c", main], env=env, stderr=subprocess.DEVNULL)
+    workers = []
+    try:
+        deadline = time.monotonic() + 60
+        while len(workers) < 2:
+            assert time.monotonic() < deadline, "the two workers did not start within 60 s"
+            assert proc.poll() is None, "the main process ended early"
+            time.sleep(0.1)
+            workers = [int(p.name) for p in marks.iterdir()]
+        assert all(_running(pid) for pid in workers)
+        proc.send_signal(signal.SIGKILL)  # only the main process, as an out-of-memory kill would
+        proc.wait()
+        deadline = time.monotonic() + 15  # the watchdog looks every second
+        while any(_running(pid) for pid in workers) and time.monotonic() < deadline:
+            time.sleep(0.1)
+        assert not [pid for pid in workers if _running(pid)], "workers outlived the main process"
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
+        for pid in workers:
+            if _running(pid):
+                os.kill(pid, signal.SIGKILL)
+
+
+def test_results_arrive_for_every_task_with_worker_processes():
+    got = {}
+    run_tasks(abs, [-1, -2, -3], on_result=lambda task, result: got.__setitem__(task, result), executor="processes",
+              workers=2)
+    assert got == {-1: 1, -2: 2, -3: 3}
