@@ -10,6 +10,11 @@ Local processes are started with ``forkserver`` (``spawn`` where that is not
 available), never ``fork``: forking a process after JAX or a threaded BLAS has
 started is unsafe.
 
+Each local worker runs on a core of its own (worker k on the k-th core the
+main process may use) and ``--ncpu 1`` keeps the main process on one core
+while it runs the tasks (:mod:`comest_bayes.runtime`): ``--ncpu N`` means N
+busy cores, however many threads XLA starts.
+
 Workers exit with the process that started them: killing only the main
 process (``kill PID``, an out-of-memory kill) must not leave workers
 computing for nobody.  Each worker asks Linux to kill it when its parent (the
@@ -30,6 +35,7 @@ from concurrent.futures import ProcessPoolExecutor, as_completed
 from typing import Any, Callable, Iterable, Sequence
 
 from .errors import BackendUnavailableError, ConfigError
+from .runtime import one_core
 
 __all__ = ["run_tasks", "EXECUTORS", "default_workers"]
 
@@ -70,8 +76,19 @@ def _alive(pid: int) -> bool:
         return True
 
 
+def _worker_init(main_pid: int, counter) -> None:
+    """Worker initializer: one core of its own (worker k on core k), and exit with the main process."""
+    from .runtime import pin_to_one_core
+
+    with counter.get_lock():
+        index = counter.value
+        counter.value += 1
+    pin_to_one_core(index)
+    _die_with_parent(main_pid)
+
+
 def _die_with_parent(main_pid: int) -> None:
-    """Worker initializer: end this worker when the main process ``main_pid`` is gone."""
+    """End this worker when the main process ``main_pid`` is gone."""
     if sys.platform.startswith("linux"):
         try:
             import ctypes
@@ -128,12 +145,15 @@ def run_tasks(fn: Callable[[Any], Any], tasks: Sequence, *, on_result: Callable[
         return
     with _progress(len(tasks), desc, progress) as bar:
         if executor == "serial" or (executor == "processes" and workers <= 1):
-            for task in tasks:
-                on_result(task, fn(task))
-                bar.update()
+            # one worker: the tasks run here, on one core (XLA would otherwise spread over every core)
+            with one_core():
+                for task in tasks:
+                    on_result(task, fn(task))
+                    bar.update()
         elif executor == "processes":
-            with ProcessPoolExecutor(max_workers=min(workers, len(tasks)), mp_context=_mp_context(),
-                                     initializer=_die_with_parent, initargs=(os.getpid(),)) as pool:
+            ctx = _mp_context()
+            with ProcessPoolExecutor(max_workers=min(workers, len(tasks)), mp_context=ctx,
+                                     initializer=_worker_init, initargs=(os.getpid(), ctx.Value("i", 0))) as pool:
                 futures = {pool.submit(fn, task): task for task in tasks}
                 try:
                     for fut in as_completed(list(futures)):

@@ -11,6 +11,13 @@ package are not affected unless they call it.
   ``OPENBLAS_NUM_THREADS`` / ``MKL_NUM_THREADS`` = 1 keep each process on its
   core, so ``--ncpu N`` means N busy cores.  These take effect only before the
   first JAX computation of the process.
+* **Cores.**  XLA's CPU client sizes its thread pool from, and its threads
+  run on, the cores the process may use; the flags above do not stop it from
+  spreading one computation over two cores.  The JAX developers' advice is
+  the process's CPU affinity, so a run's computing processes are pinned to
+  one core each (:func:`pin_to_one_core`: each worker of ``--ncpu N`` to its
+  own core; with ``--ncpu 1`` the main process while it runs the tasks,
+  :func:`one_core`).  CPU time then equals the wall time of that core.
 * **Compilation cache.**  Every model layout compiles its likelihood once per
   padded data size; JAX's persistent compilation cache keeps the compiled
   code on disk (``$COMEST_BAYES_CACHE``, default
@@ -24,7 +31,7 @@ from __future__ import annotations
 import os
 from pathlib import Path
 
-__all__ = ["configure", "cache_dir"]
+__all__ = ["configure", "cache_dir", "pin_to_one_core", "one_core"]
 
 _THREAD_VARS = ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS")
 _XLA_ONE_THREAD = "--xla_cpu_multi_thread_eigen=false intra_op_parallelism_threads=1"
@@ -68,3 +75,44 @@ def configure(threads: int | None = 1, *, cache: bool = True) -> None:
 
             jax.config.update("jax_compilation_cache_dir", str(path))
             jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.0)
+
+
+def pin_to_one_core(index: int = 0) -> int | None:
+    """Restrict this process to one of the cores it may use (``index`` modulo their number).
+
+    Returns the core, or None where affinity cannot be set (not Linux).
+    """
+    try:
+        cores = sorted(os.sched_getaffinity(0))
+    except AttributeError:  # pragma: no cover - not Linux
+        return None
+    if not cores:  # pragma: no cover
+        return None
+    core = cores[int(index) % len(cores)]
+    if len(cores) > 1:
+        try:
+            os.sched_setaffinity(0, {core})
+        except OSError:  # pragma: no cover - a sandbox that forbids it
+            return None
+    return core
+
+
+class one_core:
+    """Context manager: this process on one core inside the block, its former cores restored after."""
+
+    def __enter__(self):
+        try:
+            self._before = os.sched_getaffinity(0)
+        except AttributeError:  # pragma: no cover - not Linux
+            self._before = None
+        if self._before is not None:
+            pin_to_one_core(0)
+        return self
+
+    def __exit__(self, *exc):
+        if self._before is not None:
+            try:
+                os.sched_setaffinity(0, self._before)
+            except OSError:  # pragma: no cover
+                pass
+        return False

@@ -69,3 +69,25 @@ def test_results_arrive_for_every_task_with_worker_processes():
     run_tasks(abs, [-1, -2, -3], on_result=lambda task, result: got.__setitem__(task, result), executor="processes",
               workers=2)
     assert got == {-1: 1, -2: 2, -3: 3}
+
+
+def _cores_of_this_process(delay):
+    time.sleep(delay)  # long enough that both workers take a task
+    return os.getpid(), sorted(os.sched_getaffinity(0))
+
+
+@pytest.mark.skipif(len(os.sched_getaffinity(0)) < 2, reason="needs two cores to tell pinning from the default")
+def test_each_worker_runs_on_a_core_of_its_own_and_one_worker_keeps_the_main_process_on_one():
+    before = os.sched_getaffinity(0)
+    seen = {}
+    run_tasks(_cores_of_this_process, [0.5] * 4, on_result=lambda t, r: seen.__setitem__(r[0], r[1]),
+              executor="processes", workers=2)
+    assert len(seen) == 2  # two workers
+    cores = list(seen.values())
+    assert all(len(c) == 1 for c in cores) and cores[0] != cores[1]
+    # --ncpu 1: the tasks run in this process, on one core, and its cores are given back afterwards
+    inside = []
+    run_tasks(_cores_of_this_process, [0.0], on_result=lambda t, r: inside.append(r[1]), executor="processes",
+              workers=1)
+    assert len(inside[0]) == 1
+    assert os.sched_getaffinity(0) == before
