@@ -320,3 +320,10 @@ def synthetic_fits(tmp_path):
         return SyntheticFits(path=path, sky=sky, header=header, pixel_scale=pixel_scale, zeropoint=zeropoint)
 
     return _make
+
+
+def pytest_collection_modifyitems(config, items):
+    """Every test that uses ``shared_data`` carries the ``realdata`` marker (``-m "not realdata"`` skips them all)."""
+    for item in items:
+        if "shared_data" in getattr(item, "fixturenames", ()) and item.get_closest_marker("realdata") is None:
+            item.add_marker(pytest.mark.realdata)
