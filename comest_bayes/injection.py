@@ -381,10 +381,20 @@ def psf_enclosed_radius_pix(psf_pix, fraction: float = 0.995,
                             max_radius: float = MAX_PSF_RADIUS_PIX) -> tuple[float, float]:
     """Radius (pixels) enclosing ``fraction`` of a unit-flux PSF given in pixel units.
 
-    Measured on the PSF drawn (``no_pixel``) on an image of twice GalSim's
-    good size (at least 64 pixels; doubled until the radius fits, up to
-    ``2 max_radius + 2``): pixels sorted by distance from the centre, flux
-    accumulated until ``fraction`` of the profile's flux.
+    The growth curve is that of the continuous profile, measured on drawings
+    (``no_pixel``) centred on a sample:
+
+    * the core on a grid of step ``1 / k`` pixel, with ``k`` the smallest
+      integer that samples the profile at half GalSim's Nyquist scale (at
+      most :data:`_ENCLOSED_MAX_OVERSAMPLE`), out to the radius where the
+      fine grid reaches :data:`_ENCLOSED_MAX_SAMPLES` samples on a side;
+    * beyond that, if needed, the wings on the pixel grid, where they are
+      smooth on the scale of a pixel, added to the core's flux.
+
+    Sampling a profile narrower than a pixel at pixel centres gives sums of
+    samples that are not its flux (a Moffat of FWHM 1.4 px drawn on a grid
+    centred between pixels sums to 0.987), so the growth curve of such a
+    drawing never reaches 99.5 % and would wrongly call the wings extended.
 
     Returns
     -------
@@ -394,24 +404,64 @@ def psf_enclosed_radius_pix(psf_pix, fraction: float = 0.995,
         Flux fraction inside ``radius`` (below ``fraction`` only when capped,
         e.g. for a Moffat with beta near 1).
     """
-    limit = 2 * int(np.ceil(max_radius)) + 2
-    size = int(min(max(2 * psf_pix.getGoodImageSize(1.0), 64), limit))
+    flux = float(psf_pix.flux)
+    k = int(min(max(np.ceil(2.0 / psf_pix.nyquist_scale), 1), _ENCLOSED_MAX_OVERSAMPLE))
+    step = 1.0 / k
+    # fine grid: half-size m samples (odd side 2m + 1), grown until the radius fits or the cap
+    m_cap = min(int(np.ceil(max_radius * k)) + 1, _ENCLOSED_MAX_SAMPLES // 2)
+    m = min(max(psf_pix.getGoodImageSize(step), 64 * k) // 2, m_cap)
     while True:
-        image = psf_pix.drawImage(nx=size, ny=size, scale=1.0, method="no_pixel").array
-        c = (size - 1) / 2.0  # GalSim centres the profile on the true centre of the image
-        yy, xx = np.mgrid[0:size, 0:size]
-        r = np.hypot(xx - c, yy - c).ravel()
-        order = np.argsort(r)
-        r_sorted = r[order]
-        cum = np.cumsum(image.ravel()[order]) / float(psf_pix.flux)
-        # only radii whose whole circle lies inside the drawing are trusted
-        usable = int(np.searchsorted(r_sorted, min(c, max_radius), side="right"))
-        k = int(np.searchsorted(cum[:usable], fraction))
-        if k < usable:
-            return float(r_sorted[k]), float(cum[k])
-        if size >= limit:
+        r_sorted, cum = _growth_curve(psf_pix, m, step, flux)
+        trusted = min(m * step, max_radius)  # whole circles inside the drawing
+        usable = int(np.searchsorted(r_sorted, trusted, side="right"))
+        i = int(np.searchsorted(cum[:usable], fraction))
+        if i < usable:
+            return float(r_sorted[i]), float(cum[i])
+        if trusted >= max_radius:
             return float(max_radius), float(cum[usable - 1])
-        size = min(2 * size, limit)
+        if m >= m_cap:
+            break
+        m = min(2 * m, m_cap)
+    # wings: pixel-grid samples beyond the core radius, added to the core's flux
+    r_core, core = trusted, float(cum[usable - 1])
+    m = max(int(np.ceil(2.0 * r_core)), 32)
+    m_cap = int(np.ceil(max_radius)) + 1
+    while True:
+        r_sorted, cum = _growth_curve(psf_pix, m, 1.0, flux, inner=r_core)
+        cum = core + cum
+        trusted = min(float(m), max_radius)
+        usable = int(np.searchsorted(r_sorted, trusted, side="right"))
+        i = int(np.searchsorted(cum[:usable], fraction))
+        if i < usable:
+            return float(r_sorted[i]), float(cum[i])
+        if trusted >= max_radius or m >= m_cap:
+            return float(max_radius), float(cum[usable - 1]) if usable else core
+        m = min(2 * m, m_cap)
+
+
+#: Finest sampling of the PSF's growth curve: samples per pixel side.
+_ENCLOSED_MAX_OVERSAMPLE = 16
+#: Largest side (samples) of the fine grid of the PSF's growth curve.
+_ENCLOSED_MAX_SAMPLES = 2049
+
+
+def _growth_curve(psf_pix, m: int, step: float, flux: float, inner: float = 0.0):
+    """Radii (pixels) of the samples of a ``(2m + 1)^2`` drawing of step ``step`` and their cumulative flux.
+
+    Sorted by radius; only samples beyond ``inner`` pixels are kept.  The
+    profile is centred on the central sample, and each sample carries the
+    flux of its cell (GalSim's ``no_pixel`` drawing times the cell area).
+    """
+    side = 2 * m + 1
+    image = psf_pix.drawImage(nx=side, ny=side, scale=step, method="no_pixel", dtype=np.float64).array
+    off = (np.arange(side) - m) * step
+    r = np.hypot(off[None, :], off[:, None]).ravel()
+    values = image.ravel()
+    if inner > 0:
+        keep = r > inner
+        r, values = r[keep], values[keep]
+    order = np.argsort(r, kind="stable")
+    return r[order], np.cumsum(values[order]) / flux
 
 
 @dataclass(frozen=True)

@@ -102,13 +102,28 @@ operations on a shared ``k`` grid.
 PSF
 ---
 :func:`make_psf` returns the *effective* PSF (optics, atmosphere and pixel
-response together) as a unit-flux GalSim profile in arcsec: a Moffat
-(``injection.moffat_beta``), Gaussian or Kolmogorov of the image's measured
-FWHM, or a FITS PSF image.  The FWHM measured on an image's stars is that of
-the effective PSF, and PSF models sampled at the detector pixel (PSFEx,
-WebbPSF ``DET_SAMP``) include the pixel response, so the renderer samples the
-PSF-convolved profile at pixel centres without convolving by the pixel again
-(GalSim's ``method='no_pixel'``).
+response together) as a unit-flux GalSim profile in arcsec: a Moffat, Gaussian
+or Kolmogorov of the image's FWHM, or a FITS PSF image.  The renderer samples
+the PSF-convolved profile at pixel centres without convolving by the pixel
+again (GalSim's ``method='no_pixel'``), so the profile must already hold the
+pixel response:
+
+* when the seeing was *fitted* on the image's stars
+  (:func:`comest_bayes.psf.estimate_fwhm` fits a Moffat integrated over the
+  pixels, with free beta), the fitted Moffat (its FWHM and its beta) is
+  convolved with the square pixel (``pixel_integrated=True``): the injected
+  point sources are then the fitted star model, pixel for pixel, and their
+  flux does not depend on where they fall within a pixel, even for a PSF
+  narrower than a pixel;
+* a FWHM given with ``--fwhm`` or read from a header keyword was measured on
+  the pixelated image (SExtractor's ``FWHM_IMAGE``, the DECam pipeline's
+  ``FWHM``), so the analytic profile of that FWHM is the effective PSF itself;
+* PSF models sampled at the detector pixel (PSFEx, WebbPSF ``DET_SAMP``)
+  include the pixel response.
+
+How the PSF of a run is chosen and where each of its numbers came from is
+decided by :func:`comest_bayes.psf.injection_psf` and recorded in ``run.json``
+(``psf``).
 """
 
 from __future__ import annotations
@@ -132,7 +147,7 @@ __all__ = [
     "bulge_disk_components", "source_profile", "draw_magnitudes", "draw_parameters",
     "BATCHED_KINDS", "DEV_K_STEP", "RadialKTable", "devaucouleurs_k_table", "exponential_k", "buldisk_k",
     "buldisk_radius_per_hlr", "shear_matrices", "kspace_quadratic_forms",
-    "make_psf", "read_psf_image", "psf_half_light_radius_pix",
+    "make_psf", "read_psf_image", "psf_half_light_radius_pix", "DEFAULT_MOFFAT_BETA",
     "CosmosSample", "load_cosmos",
     "ObservedPopulation", "fit_count_slope", "fit_observed_population",
 ]
@@ -147,6 +162,8 @@ SERSIC_N_STEP = 0.05
 MAX_SERSIC_INDICES = 80
 #: FWHM of a Gaussian in units of its sigma, 2 sqrt(2 ln 2).
 FWHM_PER_SIGMA = 2.0 * np.sqrt(2.0 * np.log(2.0))
+#: Moffat beta injected when neither the configuration nor the image's stars give one.
+DEFAULT_MOFFAT_BETA = 3.0
 
 # Columns of a GalSim RealGalaxyCatalog naming files that must exist in its directory.
 _COSMOS_FILE_COLUMNS = ("GAL_FILENAME", "PSF_FILENAME", "NOISE_FILENAME")
@@ -773,7 +790,8 @@ def read_psf_image(path) -> tuple[np.ndarray, float | None]:
     return data, header_scale
 
 
-def make_psf(config: InjectionConfig, fwhm_pix: float | None, pixel_scale: float):
+def make_psf(config: InjectionConfig, fwhm_pix: float | None, pixel_scale: float, *,
+             beta: float | None = None, pixel_integrated: bool = False):
     """The effective PSF as a unit-flux GalSim profile in arcsec.
 
     Parameters
@@ -785,6 +803,18 @@ def make_psf(config: InjectionConfig, fwhm_pix: float | None, pixel_scale: float
         The image's seeing FWHM in pixels (analytic PSFs; ignored for a file).
     pixel_scale : float
         Arcsec per pixel of the image.
+    beta : float, optional
+        Moffat beta.  Default: ``config.moffat_beta`` when it is positive,
+        else :data:`DEFAULT_MOFFAT_BETA` (the pipeline passes the beta fitted
+        on the image's stars; see :func:`comest_bayes.psf.injection_psf`).
+    pixel_integrated : bool
+        True when ``fwhm_pix`` (and ``beta``) describe the profile *before*
+        the detector pixel, as :func:`comest_bayes.psf.estimate_fwhm` fits
+        it: the analytic profile is then convolved with the square pixel, so
+        that the effective PSF is the fitted one.  False (default): the
+        analytic profile is itself the effective PSF (a FWHM measured on the
+        image, e.g. by SExtractor, or given with ``--fwhm``).  Ignored for a
+        FITS PSF image.
 
     Returns
     -------
@@ -817,10 +847,18 @@ def make_psf(config: InjectionConfig, fwhm_pix: float | None, pixel_scale: float
         fwhm = float(fwhm_pix) * float(pixel_scale)
         kind = name.lower()
         if kind == "moffat":
-            return galsim.Moffat(beta=config.moffat_beta, fwhm=fwhm)
-        if kind == "gaussian":
-            return galsim.Gaussian(fwhm=fwhm)
-        return galsim.Kolmogorov(fwhm=fwhm)
+            if beta is None:
+                beta = config.moffat_beta if config.moffat_beta > 0 else DEFAULT_MOFFAT_BETA
+            if not (np.isfinite(beta) and beta > 1.1):
+                raise InputError(f"a Moffat PSF needs a finite beta > 1.1, got {beta!r}.")
+            profile = galsim.Moffat(beta=float(beta), fwhm=fwhm)
+        elif kind == "gaussian":
+            profile = galsim.Gaussian(fwhm=fwhm)
+        else:
+            profile = galsim.Kolmogorov(fwhm=fwhm)
+        if pixel_integrated:
+            return galsim.Convolve(profile, galsim.Pixel(float(pixel_scale)))
+        return profile
     data, header_scale = read_psf_image(name)
     if config.psf_pixel_scale > 0:
         scale = float(config.psf_pixel_scale)

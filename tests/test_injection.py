@@ -11,7 +11,8 @@ from astropy.wcs import WCS
 from comest_bayes.config import InjectionConfig
 from comest_bayes.errors import InputError
 from comest_bayes.injection import (FLAG_DRAW_ERROR, FLAG_MASKED, FLAG_OFF_IMAGE, TRUTH_COLUMNS,
-                                    StampRenderer, local_jacobians, make_truth, render_truth)
+                                    StampRenderer, local_jacobians, make_truth, psf_enclosed_radius_pix,
+                                    render_truth)
 from comest_bayes.sources import load_cosmos, make_psf, sersic_index_grid
 
 from conftest import tan_header
@@ -363,6 +364,55 @@ def test_psf_with_extreme_wings_warns_and_caps_the_stamps():
                                  pixel_scale=SCALE, rng_seed=0)
     assert info.meta["psf_radius_pix"] == 256.0
     assert 0.95 < info.meta["psf_enclosed_fraction"] < 0.995
+
+
+def _moffat_radius(fwhm, beta, fraction):
+    """Radius enclosing ``fraction`` of a Moffat's flux: ``1 - (1 + R^2/alpha^2)^(1 - beta) = fraction``."""
+    alpha = fwhm / (2.0 * np.sqrt(2.0 ** (1.0 / beta) - 1.0))
+    return alpha * np.sqrt((1.0 - fraction) ** (1.0 / (1.0 - beta)) - 1.0)
+
+
+@pytest.mark.parametrize("fwhm", [1.0, 1.4, 1.8, 3.0])
+@pytest.mark.parametrize("beta", [2.5, 3.0])
+@pytest.mark.parametrize("pixel_integrated", [False, True])
+def test_undersampled_psf_gets_a_small_stamp_radius_and_no_warning(fwhm, beta, pixel_integrated):
+    # A Moffat narrower than a pixel sampled at pixel centres does not sum to its flux (FWHM 1.4 px:
+    # 98.7 %), which once sized its stamps at the 256 px cap with a false "extended wings" warning.
+    # The radius is the continuous profile's: for the Moffat itself known in closed form (0.5 %
+    # tolerance: the growth curve steps from one sample radius to the next, 1/k pixel apart, k >= 2
+    # here); convolving with the pixel widens it by less than half a pixel diagonal.
+    cfg = InjectionConfig(moffat_beta=beta)
+    psf = make_psf(cfg, fwhm, SCALE, pixel_integrated=pixel_integrated)
+    radius, enclosed = psf_enclosed_radius_pix(galsim.PixelScale(SCALE).toImage(psf), 0.995)
+    exact = _moffat_radius(fwhm, beta, 0.995)
+    if pixel_integrated:
+        assert exact * (1 - 5e-3) <= radius <= exact + 0.71
+    else:
+        assert radius == pytest.approx(exact, rel=5e-3)
+    assert radius < 6.0 * fwhm
+    assert enclosed == pytest.approx(0.995, abs=2e-4)
+    shape = (64, 64)
+    for x, y in ((32.0, 32.0), (32.3, 31.6), (32.5, 32.5)):
+        t = truth_for("point", [x], [y], [20.0], shape=shape)
+        with warnings.catch_warnings():
+            warnings.simplefilter("error")  # no warning about the wings
+            img, info = render_truth(np.zeros(shape, np.float32), t, psf=psf, config=cfg, pixel_scale=SCALE,
+                                     zeropoint=ZP, rng_seed=0)
+        assert info.meta["psf_radius_pix"] == radius and info.meta["psf_enclosed_fraction"] >= 0.995 - 1e-6
+        if pixel_integrated:
+            # the pixel's transform vanishes at every alias of k = 0, so the samples of a pixel-integrated
+            # profile sum to its flux wherever it sits in the pixel (stamps hold it to ~0.2 %)
+            assert img.sum() == pytest.approx(float(t["flux"][0]), rel=3e-3)
+
+
+def test_enclosed_radius_of_heavy_wings_matches_the_moffat_growth_curve():
+    # beta 1.5: the radius (131 px at FWHM 1 px) lies beyond the fine core grid, in the pixel-sampled wings;
+    # at FWHM 3 px it lies beyond the 256 px cap, where the enclosed fraction is that of the profile.
+    radius, enclosed = psf_enclosed_radius_pix(galsim.Moffat(beta=1.5, fwhm=1.0), 0.995)
+    assert radius == pytest.approx(_moffat_radius(1.0, 1.5, 0.995), rel=5e-3)
+    radius, enclosed = psf_enclosed_radius_pix(galsim.Moffat(beta=1.5, fwhm=3.0), 0.995)
+    alpha = 3.0 / (2.0 * np.sqrt(2.0 ** (1.0 / 1.5) - 1.0))
+    assert radius == 256.0 and enclosed == pytest.approx(1.0 - (1.0 + (256.0 / alpha) ** 2) ** -0.5, abs=1e-5)
 
 
 def test_stamp_renderer_with_an_undersampled_psf_keeps_the_flux():
