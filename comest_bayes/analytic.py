@@ -11,12 +11,16 @@ derivation, its assumptions and the measured size of each correction are in
   how :mod:`comest_bayes.injection` draws the effective PSF), or integrated
   over the pixel (``pixel_integrated=True``).
 * ``psf="moffat"`` replaces the Gaussian with the circular Moffat profile a
-  default run injects (:func:`comest_bayes.sources.make_psf`:
-  ``galsim.Moffat(beta=injection.moffat_beta, fwhm=FWHM)``, beta = 3 by
-  default): ``P(r) = (beta - 1) / (pi alpha^2) (1 + (r / alpha)^2)^(-beta)``
-  with ``alpha = FWHM / (2 sqrt(2^(1/beta) - 1))``, unit flux, untruncated,
-  sampled at pixel centres (see :func:`psf_image`).  Everything below holds
-  for any PSF ``P``; only ``S(c)`` and the filtered profile change.
+  run injects (:func:`comest_bayes.sources.make_psf`:
+  ``galsim.Moffat(beta=beta, fwhm=FWHM)``):
+  ``P(r) = (beta - 1) / (pi alpha^2) (1 + (r / alpha)^2)^(-beta)`` with
+  ``alpha = FWHM / (2 sqrt(2^(1/beta) - 1))``, unit flux, untruncated,
+  sampled at pixel centres (as a run injects a FWHM given with ``--fwhm`` or
+  read from the header) or integrated over the pixel
+  (``pixel_integrated=True``, as a run injects the Moffat fitted on the
+  image's stars); see :func:`psf_image`.  A run records its FWHM, beta and
+  pixel integration in ``run.json`` (``psf``).  Everything below holds for
+  any PSF ``P``; only ``S(c)`` and the filtered profile change.
 * SEP with ``filter_type="conv"`` and an error map (how
   :func:`comest_bayes.detection.detect_array` calls it) convolves the
   background-subtracted image with the unit-sum kernel ``k`` and keeps the
@@ -59,7 +63,6 @@ from dataclasses import dataclass
 import numpy as np
 from scipy import ndimage, optimize, signal, special
 
-from .config import InjectionConfig
 from .errors import InputError
 
 __all__ = [
@@ -86,8 +89,10 @@ _FWHM_TO_SIGMA = 1.0 / (2.0 * math.sqrt(2.0 * math.log(2.0)))
 
 #: PSF profiles the prediction knows: ``psf=`` of the public functions.
 PSF_SHAPES = ("gaussian", "moffat")
-#: Moffat beta used when none is given: the injection default (``InjectionConfig.moffat_beta``).
-DEFAULT_MOFFAT_BETA = float(InjectionConfig.moffat_beta)
+#: Moffat beta used when none is given: the beta a run injects when the image's stars give none
+#: (:data:`comest_bayes.sources.DEFAULT_MOFFAT_BETA`; a run records the beta it used in
+#: ``run.json``, ``psf.beta``).
+DEFAULT_MOFFAT_BETA = 3.0
 #: A default Moffat stamp's inscribed circle holds at least this fraction of the flux.
 MOFFAT_STAMP_FRACTION = 0.999
 #: Largest default stamp half-size, pixels (the injector's ``MAX_PSF_RADIUS_PIX``); a Moffat of
@@ -277,7 +282,7 @@ def psf_image(fwhm_pix: float, dx: float = 0.0, dy: float = 0.0, *, half_size: i
         profile* (GalSim's ``trunc=0``; the stamp is not renormalised, so it
         sums to the fraction of the light it holds, >= 0.999 with the default
         half-size, less when ``half_size`` is given smaller).
-    moffat_beta : float, default :data:`DEFAULT_MOFFAT_BETA` (3.0, ``InjectionConfig.moffat_beta``)
+    moffat_beta : float, default :data:`DEFAULT_MOFFAT_BETA` (3.0; a run's is ``psf.beta`` in its ``run.json``)
         Moffat index (> 1.1); ignored for the Gaussian.
 
     Returns

@@ -259,7 +259,9 @@ class InjectionConfig:
     psf_pixel_scale : float
         Pixel scale (arcsec) of a FITS PSF image; 0 means the image's.
     moffat_beta : float
-        Moffat beta.
+        Moffat beta; 0 (default) for the median beta of the Moffat fits to
+        the image's stars, or 3 when they could not be fitted (see
+        :func:`comest_bayes.psf.injection_psf`).
     hlr_range, q_range, bulge_fraction_range, sersic_n_range : tuple of float
         Uniform ranges of half-light radius (arcsec), axis ratio, bulge flux
         fraction and Sersic index.
@@ -281,7 +283,7 @@ class InjectionConfig:
     min_sep: float = 0.0
     psf: str = "moffat"
     psf_pixel_scale: float = 0.0
-    moffat_beta: float = 3.0
+    moffat_beta: float = 0.0
     hlr_range: tuple = (0.35, 0.75)
     q_range: tuple = (0.4, 1.0)
     bulge_fraction_range: tuple = (0.0, 1.0)
@@ -301,7 +303,8 @@ class InjectionConfig:
                "injection.mag_range", self.mag_range, "[] (automatic) or [bright, faint] with bright < faint")
         _check(self.placement in PLACEMENTS, "injection.placement", self.placement, f"one of {PLACEMENTS}")
         _check(self.min_sep >= 0, "injection.min_sep", self.min_sep, "a non-negative separation in arcsec")
-        _check(self.moffat_beta > 1.1, "injection.moffat_beta", self.moffat_beta, "a Moffat beta > 1.1, e.g. 3")
+        _check(self.moffat_beta == 0 or self.moffat_beta > 1.1, "injection.moffat_beta", self.moffat_beta,
+               "0 (the stars' fitted beta) or a Moffat beta > 1.1, e.g. 3")
         for name in ("hlr_range", "q_range", "bulge_fraction_range", "sersic_n_range"):
             value = getattr(self, name)
             _check(len(value) == 2 and 0 <= value[0] <= value[1], f"injection.{name}", value,

@@ -143,7 +143,7 @@ def run_pipeline(options: ImageOptions, config: RunConfig, out_dir, *,
     -------
     RunResult
     """
-    from .psf import estimate_fwhm
+    from .psf import injection_psf, measure_seeing
     from .sourcefree import build_source_free
 
     # ---- validation: nothing is written before all of this passes -------------
@@ -183,18 +183,20 @@ def run_pipeline(options: ImageOptions, config: RunConfig, out_dir, *,
         except DetectionOverflowError as exc:
             raise DetectionOverflowError(f"{image.path}: {exc}") from None
         det_seconds = time.perf_counter() - t0
+    # ---- seeing and injection PSF: the stars are fitted even when the FWHM is given (for their
+    # beta); when they cannot be, the header's seeing keywords are the fallback ------------------
     fwhm_seconds = None
-    if image.fwhm is not None:
-        fwhm = {"fwhm": image.fwhm, "fwhm_err": 0.0, "nstars": 0, "method": "given by the user (--fwhm)"}
-    elif run.stage_done("fwhm"):
+    if run.stage_done("fwhm") and "psf" in run.stage_info("fwhm"):
         fwhm = run.stage_info("fwhm")["estimate"]
+        psf_choice = run.stage_info("fwhm")["psf"]
     else:
         if det is None:
             det = _load_detection(run, image)
         t0 = time.perf_counter()
-        est = estimate_fwhm(image.data - det.background, det.catalog, mask=image.mask,
-                            saturation_flagged=image.saturation is not None)
-        fwhm = est.as_dict()
+        fwhm = measure_seeing(image.data - det.background, det.catalog, mask=image.mask,
+                              saturation_flagged=image.saturation is not None, headers=_headers(image),
+                              pixel_scale=image.pixel_scale, user_fwhm=image.fwhm)
+        psf_choice = injection_psf(config.injection, fwhm)
         fwhm_seconds = time.perf_counter() - t0
 
     fwhm_arcsec = float(fwhm["fwhm"]) * image.pixel_scale
@@ -220,11 +222,15 @@ def run_pipeline(options: ImageOptions, config: RunConfig, out_dir, *,
         log(f"detect: done earlier ({len(det.catalog)} sources)")
     timings["detect"] = run.stage_info("detect").get("seconds")
     if fwhm_seconds is not None:
-        run.record_stage("fwhm", seconds=fwhm_seconds, estimate=fwhm)
+        run.record_stage("fwhm", seconds=fwhm_seconds, estimate=fwhm, psf=psf_choice)
     image.fwhm = float(fwhm["fwhm"])
     image.provenance.setdefault("fwhm", fwhm["method"])
     log(f"fwhm: {image.fwhm:.2f} px = {image.fwhm * image.pixel_scale:.2f} arcsec ({fwhm['method']})")
-    run.update(image=image.facts())
+    log(f"psf: injecting a {psf_choice['description']}; FWHM: {psf_choice['fwhm_source']}"
+        + (f"; beta: {psf_choice['beta_source']}" if psf_choice.get("beta_source") else ""))
+    for line in psf_choice["warnings"]:
+        log(f"warning: psf: {line}")
+    run.update(image=image.facts(), psf=psf_choice)
 
     # ---- source-free and bright-and-big images --------------------------------------
     if run.stage_done("sourcefree"):
@@ -251,12 +257,31 @@ def run_pipeline(options: ImageOptions, config: RunConfig, out_dir, *,
                      summary=summary)
 
 
-def _psf_nea(config: RunConfig, image: ImageData) -> float:
-    """Noise-equivalent area (pixels) of the injection PSF on the image's pixel grid."""
-    from .depth import noise_equivalent_area
+def _headers(image: ImageData) -> list:
+    """The image HDU's header, then the primary header when the image sits in an extension."""
+    headers = [image.header]
+    if image.hdu and image.path:
+        try:
+            headers.append(fits.getheader(image.path, 0))
+        except (OSError, IndexError, ValueError):  # the image was read; a broken primary header is no error
+            pass
+    return headers
+
+
+def _injection_psf_profile(config: RunConfig, image: ImageData, psf_choice: dict | None):
+    """The GalSim profile (arcsec) the injections use, as decided by :func:`comest_bayes.psf.injection_psf`."""
     from .sources import make_psf
 
-    psf = make_psf(config.injection, image.fwhm, image.pixel_scale)
+    psf_choice = psf_choice or {}
+    return make_psf(config.injection, image.fwhm, image.pixel_scale, beta=psf_choice.get("beta"),
+                    pixel_integrated=bool(psf_choice.get("pixel_integrated", False)))
+
+
+def _psf_nea(config: RunConfig, image: ImageData, psf_choice: dict | None = None) -> float:
+    """Noise-equivalent area (pixels) of the injection PSF on the image's pixel grid."""
+    from .depth import noise_equivalent_area
+
+    psf = _injection_psf_profile(config, image, psf_choice)
     return noise_equivalent_area(psf.drawImage(nx=64, ny=64, scale=image.pixel_scale, method="no_pixel").array)
 
 
@@ -280,6 +305,7 @@ def _injection_stages(run: RunDirectory, image: ImageData, det: DetectionResult,
     from .summary import SUMMARY_FORMAT, depth_summary, kind_binned, kind_summary, maps_hdulist
 
     inj = config.injection
+    psf_choice = run.state.get("psf") or {}
     base_name = "bnb.fits" if inj.on == "bnb" else "sfi.fits"
     if not run.file(base_name).exists():
         raise ConfigError(f"injection.on={inj.on!r} needs {base_name}, which this run did not make; "
@@ -296,7 +322,7 @@ def _injection_stages(run: RunDirectory, image: ImageData, det: DetectionResult,
                                    config=config.detection)
         files = [run.write_table("baseline.fits", bdet.catalog),
                  run.write_image("mask.fits", image.mask.astype(np.uint8), header)]
-        mag_range = tuple(inj.mag_range) if inj.mag_range else _auto_mag_range(image, det, _psf_nea(config, image))
+        mag_range = tuple(inj.mag_range) if inj.mag_range else _auto_mag_range(image, det, _psf_nea(config, image, psf_choice))
         run.record_stage("baseline", files=files, seconds=time.perf_counter() - t0, nsources=len(bdet.catalog),
                          mag_range=list(mag_range), base=base_name)
         log(f"baseline: {len(bdet.catalog)} sources detected on the bare {base_name} "
@@ -311,7 +337,9 @@ def _injection_stages(run: RunDirectory, image: ImageData, det: DetectionResult,
         zeropoint=image.zeropoint, gain=image.gain, saturation=image.saturation, pixel_scale=image.pixel_scale,
         fwhm=float(image.fwhm), mag_range=mag_range, noise_mode=str(det.meta.get("noisemod", "background")), detection=config.detection, injection=inj,
         matching=config.matching, root_seed=config.seed,
-        image_dir=str(run.file("sims")) if inj.write_images else None)
+        image_dir=str(run.file("sims")) if inj.write_images else None,
+        psf_beta=float(psf_choice.get("beta") or 0.0),
+        psf_pixel_integrated=bool(psf_choice.get("pixel_integrated", False)))
 
     sims = run.file("sims")
     for stale in sims.glob("*/.tmp-*"):  # a killed run's half-written realization files
@@ -371,6 +399,8 @@ def _injection_stages(run: RunDirectory, image: ImageData, det: DetectionResult,
             hdul.writeto(tmp)
         kinds[kind] = kind_summary(merged, edges, config, nreal=len(done), maps_file=maps_name, map_edges=map_edges)
         kinds[kind]["seconds"] = {k: round(v, 2) for k, v in stage_seconds[kind].items()}
+        if kind == "point":
+            kinds[kind]["size_check"] = _point_size_check(image, det, merged["matched"], log)
         c = kinds[kind]["counts"]
         # a realization may draw no injection at all (small field, low density): a valid result
         nempty = len(done) - len(np.unique(np.asarray(merged["injected"]["realization"]))) \
@@ -390,12 +420,48 @@ def _injection_stages(run: RunDirectory, image: ImageData, det: DetectionResult,
         "format": SUMMARY_FORMAT,
         "image": image.facts(),
         "depth": depth_summary(det.noise, image.mask, zeropoint=image.zeropoint, fwhm=image.fwhm,
-                               det_mags=det.catalog["mag_auto"], psf_nea=_psf_nea(config, image)),
+                               det_mags=det.catalog["mag_auto"], psf_nea=_psf_nea(config, image, psf_choice)),
+        "psf": psf_choice,
         "kinds": kinds,
         "failed_realizations": failures,
     }
     run.write_json("summary.json", summary)
     return summary
+
+
+#: Signal-to-noise above which the sizes of stars and injected point sources are compared.
+SIZE_CHECK_SNR = 20.0
+
+
+def _point_size_check(image: ImageData, det: DetectionResult, matched, log) -> dict:
+    """Median flux_radius of detected point-source injections against the image's stars (SNR >= 20 both)."""
+    from .psf import BAD_FLAGS, point_size_check, select_stars
+
+    sel = select_stars(det.catalog, shape=image.shape, saturation_flagged=image.saturation is not None,
+                       snr_min=SIZE_CHECK_SNR)
+    stars = np.asarray(det.catalog["flux_radius"], dtype=float)[sel.index]
+    if len(matched):
+        ok = (np.asarray(matched["det_snr_auto"], dtype=float) >= SIZE_CHECK_SNR) \
+            & ((np.asarray(matched["det_flags"], dtype=np.int64) & BAD_FLAGS) == 0) \
+            & np.asarray(matched["usable"], dtype=bool)
+        injected = np.asarray(matched["det_flux_radius"], dtype=float)[ok]
+    else:
+        injected = np.zeros(0)
+    check = point_size_check(stars, injected)
+    check["snr_min"] = SIZE_CHECK_SNR
+    if check["status"] == "not enough":
+        log(f"psf check: point: too few to compare the sizes of injected point sources and stars "
+            f"({check['ninjected']} detected injections and {check['nstars']} stars with SNR >= {SIZE_CHECK_SNR:g})")
+        return check
+    said = (f"median flux_radius {check['injected']:.3f} px of {check['ninjected']} detected point-source "
+            f"injections against {check['stars']:.3f} px of {check['nstars']} stars (ratio {check['ratio']:.3f} "
+            f"+- {check['ratio_err']:.3f})")
+    if check["status"] == "agree":
+        log(f"psf check: point: {said}: they agree within {100 * check['tolerance']:.0f}%")
+    else:
+        log(f"warning: psf check: point: {said}: the injected point sources do not look like the image's stars; "
+            f"the completeness of point sources may be biased (see the 'psf' entry of run.json)")
+    return check
 
 
 def _fit_stages(run: RunDirectory, image: ImageData, det: DetectionResult, config: RunConfig, kinds: dict,

@@ -20,8 +20,22 @@ measured here, in three steps:
    mild PSF variation allow.  The FWHM of the image is the sigma-clipped median
    of the FWHMs around the densest such cluster.
 
-An image without stars raises :class:`~comest_bayes.errors.InputError`
-asking for ``--fwhm``.  The checks are statistical: an image holding only
+:func:`estimate_fwhm` raises :class:`~comest_bayes.errors.InputError`
+asking for ``--fwhm`` on an image without stars; a run then falls back on
+the header (:func:`measure_seeing`): the keywords of
+:data:`HEADER_SEEING_KEYWORDS` (DECam's ``FWHM`` in pixels, CASU's
+``SEEING`` in pixels, ``PSF_FWHM``, SExtractor's ``FWHM_IMAGE`` and
+``FWHM_WORLD``), in the unit their comment names, and checked against the
+sizes of the image's bright detections (:func:`seeing_from_header`).  Only
+when that fails too does the run stop, with an error listing every attempt.
+
+The injected PSF (:func:`injection_psf`) is the fitted one: the Moffat of
+the fitted FWHM *and beta*, integrated over the pixel as in the fits; a beta
+at a bound of :data:`BETA_RANGE` is warned about.  A FWHM from ``--fwhm`` or
+the header is that of the effective PSF; the stars' beta is used with it
+when they could be fitted, else beta = 3.  :func:`point_size_check` compares
+the sizes the detector measures on the injected point sources and on the
+stars.  The checks are statistical: an image holding only
 galaxies of very similar, barely resolved sizes can still pass them (2 of 20
 simulated star-free fields did), so the ``method`` sentence reports the locus
 used.
@@ -38,7 +52,9 @@ curvature at the centre has a FWHM only 0.2 % larger than the Gaussian's.
 
 from __future__ import annotations
 
+import re
 from dataclasses import asdict, dataclass
+from typing import NamedTuple
 
 import numpy as np
 from scipy.optimize import least_squares
@@ -48,7 +64,8 @@ from .catalog import (FLAG_APER_TRUNC, FLAG_BLENDED, FLAG_DEBLEND_OVERFLOW, FLAG
 from .errors import InputError
 
 __all__ = ["FwhmEstimate", "estimate_fwhm", "select_stars", "fit_moffat", "moffat_image", "BAD_FLAGS",
-           "BETA_RANGE"]
+           "BETA_RANGE", "HEADER_SEEING_KEYWORDS", "HeaderSeeing", "seeing_from_header", "measure_seeing",
+           "injection_psf", "point_size_check"]
 
 #: Catalog flags that disqualify a star candidate.
 BAD_FLAGS = FLAG_MASKED | FLAG_BLENDED | FLAG_SATURATED | FLAG_EDGE | FLAG_APER_TRUNC | FLAG_DEBLEND_OVERFLOW
@@ -86,6 +103,13 @@ class FwhmEstimate:
         in ``run.json`` and shown in reports).
     beta : float
         Median Moffat beta of the same stars (NaN when not measured).
+    beta_at_bound : int
+        How many of those stars' fitted beta lies at an end of
+        :data:`BETA_RANGE` (within 1 %).
+    star_flux_radius : float
+        Median ``flux_radius`` (pixels, from the detection catalog) of those
+        stars: the reference for the size of injected point sources
+        (:func:`point_size_check`).
     """
 
     fwhm: float
@@ -93,13 +117,17 @@ class FwhmEstimate:
     nstars: int
     method: str
     beta: float = float("nan")
+    beta_at_bound: int = 0
+    star_flux_radius: float = float("nan")
 
     def as_dict(self) -> dict:
-        """Plain-JSON form (NaN beta becomes None)."""
+        """Plain-JSON form (NaN becomes None)."""
         out = asdict(self)
         out["fwhm"], out["fwhm_err"] = float(self.fwhm), float(self.fwhm_err)
-        out["nstars"] = int(self.nstars)
-        out["beta"] = float(self.beta) if np.isfinite(self.beta) else None
+        out["nstars"], out["beta_at_bound"] = int(self.nstars), int(self.beta_at_bound)
+        for name in ("beta", "star_flux_radius"):
+            value = float(getattr(self, name))
+            out[name] = value if np.isfinite(value) else None
         return out
 
 
@@ -427,6 +455,7 @@ def estimate_fwhm(data_sub, catalog, *, mask=None, saturation_flagged: bool = Tr
     snr_all = np.asarray(catalog["snr_auto"], dtype=float)
     fits = []
     fit_snr = []
+    fit_rows = []
     reasons: dict[str, int] = {}
     for row in sel.index[:max_stars]:
         xc, yc = x_all[row], y_all[row]
@@ -459,6 +488,7 @@ def estimate_fwhm(data_sub, catalog, *, mask=None, saturation_flagged: bool = Tr
         if fit.ok:
             fits.append(fit)
             fit_snr.append(snr_all[row])
+            fit_rows.append(row)
         else:
             reasons[fit.reason] = reasons.get(fit.reason, 0) + 1
 
@@ -507,10 +537,365 @@ def estimate_fwhm(data_sub, catalog, *, mask=None, saturation_flagged: bool = Tr
         )
     err = 1.2533 * std / np.sqrt(nused) if nused > 1 else np.nan
     beta = float(np.median(betas[keep]))
+    at_bound = int(np.sum((betas[keep] <= 1.01 * BETA_RANGE[0]) | (betas[keep] >= 0.99 * BETA_RANGE[1])))
+    star_radius = float(np.median(r_all[np.asarray(fit_rows)[keep]]))
     method = (
         f"sigma-clipped median of circular Moffat fits (free centre, flux, FWHM, beta; pixel-integrated) to "
         f"{nused} stars: unflagged sources with SNR >= {snr_min:g} and ellipticity <= {max_ellipticity:g} on "
         f"the stellar locus flux_radius = {sel.locus_radius:.2f} px (scatter {100 * sel.locus_width:.0f} %); "
         f"median beta {beta:.1f}, ellipticity scatter {ell_spread:.3f}"
     )
-    return FwhmEstimate(fwhm=fwhm, fwhm_err=float(err), nstars=nused, method=method, beta=beta)
+    return FwhmEstimate(fwhm=fwhm, fwhm_err=float(err), nstars=nused, method=method, beta=beta,
+                        beta_at_bound=at_bound, star_flux_radius=star_radius)
+
+
+# ---------------------------------------------------------------------------------------------
+# Header keywords: the fallback when the stars cannot be measured
+# ---------------------------------------------------------------------------------------------
+
+#: Header keywords that may hold the seeing FWHM, in the order they are tried, each with the unit
+#: taken when the keyword's comment names none (None: used only when the comment names the unit,
+#: or for ``SEEING`` in data processed by CASU, whose convention is pixels).
+HEADER_SEEING_KEYWORDS = (
+    ("FWHM", "pixel"),        # DECam / NOAO community pipeline: "Median FWHM in pixels"
+    ("SEEING", None),         # CASU (UKIDSS WFCAM, VISTA): "[pixels] Average FWHM"; elsewhere often arcsec
+    ("PSF_FWHM", None),
+    ("FWHM_IMAGE", "pixel"),  # SExtractor's parameter name: pixels
+    ("FWHM_WORLD", "deg"),    # SExtractor's parameter name: degrees
+)
+#: A header FWHM outside this range (pixels) is not a seeing.
+HEADER_FWHM_RANGE = (0.7, 100.0)
+#: A point source of FWHM F has flux_radius between 0.5 F (Gaussian) and 0.8 F (Moffat beta 2);
+#: a header FWHM is refused when even the compact bright detections are twice as large as that.
+_POINT_RADIUS_PER_FWHM = 0.8
+_UNIT_PATTERNS = (
+    ("pixel", re.compile(r"\bpix(?:el)?s?\b|\bpx\b", re.IGNORECASE)),
+    ("arcsec", re.compile(r"arc\s*-?\s*sec|\basec\b|\"", re.IGNORECASE)),
+    ("deg", re.compile(r"\bdeg(?:ree)?s?\b", re.IGNORECASE)),
+)
+_ARCSEC_PER_UNIT = {"arcsec": 1.0, "deg": 3600.0}
+
+
+def _unit_of_comment(comment: str) -> str | None:
+    """The unit a header comment names first (``pixel``, ``arcsec`` or ``deg``), or None."""
+    found = [(m.start(), unit) for unit, pattern in _UNIT_PATTERNS if (m := pattern.search(comment or ""))]
+    return min(found)[1] if found else None
+
+
+def _is_casu(headers) -> bool:
+    """True for data processed by CASU (UKIRT/WFCAM, VISTA/VIRCAM), whose ``SEEING`` is in pixels."""
+    for header in headers:
+        names = {str(header.get(k, "")).strip().upper() for k in ("INSTRUME", "TELESCOP")}
+        if names & {"WFCAM", "UKIRT", "VIRCAM", "VISTA"} or "CASUVERS" in header:
+            return True
+    return False
+
+
+def _compact_radius(catalog, min_sources: int = 5) -> tuple[float, int]:
+    """10th percentile of ``flux_radius`` of the unflagged detections with SNR >= 20 (NaN if too few)."""
+    if catalog is None or len(catalog) == 0 or not {"flux_radius", "snr_auto", "flags"} <= set(catalog.colnames):
+        return float("nan"), 0
+    radius = np.asarray(catalog["flux_radius"], dtype=float)
+    snr = np.asarray(catalog["snr_auto"], dtype=float)
+    flags = np.asarray(catalog["flags"], dtype=np.int64)
+    with np.errstate(invalid="ignore"):
+        ok = np.isfinite(radius) & (radius > 0) & (snr >= 20.0) & ((flags & BAD_FLAGS) == 0)
+    n = int(ok.sum())
+    return (float(np.percentile(radius[ok], 10)) if n >= min_sources else float("nan")), n
+
+
+class HeaderSeeing(NamedTuple):
+    """The seeing read from header keywords (:func:`seeing_from_header`).
+
+    Attributes
+    ----------
+    fwhm : float or None
+        FWHM in pixels, None when no keyword gave a usable one.
+    keyword : str or None
+        The keyword used.
+    source : str
+        One sentence: the keyword, its value, its unit and why that unit.
+    tried : list of str
+        What each keyword gave, in the order tried (absent, refused and why, or used).
+    """
+
+    fwhm: float | None
+    keyword: str | None
+    source: str
+    tried: list
+
+
+def seeing_from_header(headers, pixel_scale: float, *, catalog=None) -> HeaderSeeing:
+    """The seeing FWHM in pixels from the first usable keyword of :data:`HEADER_SEEING_KEYWORDS`.
+
+    Parameters
+    ----------
+    headers : sequence of astropy.io.fits.Header
+        The image HDU's header, then the primary header (a keyword is taken
+        from the first header holding it).
+    pixel_scale : float
+        Arcsec per pixel, to convert a FWHM in arcsec or degrees.
+    catalog : astropy.table.Table, optional
+        Detection catalog of the image.  When it holds at least 5 unflagged
+        detections with SNR >= 20, a header FWHM is refused if the 10th
+        percentile of their ``flux_radius`` exceeds twice the largest
+        ``flux_radius`` a point source of that FWHM has (0.8 FWHM, a Moffat of
+        beta 2): the keyword does not describe this image (another binning,
+        another unit than its comment says).
+
+    Returns
+    -------
+    HeaderSeeing
+
+    Notes
+    -----
+    The unit is the one the keyword's comment names ("Median FWHM in
+    pixels", "[arcsec]"); without one, ``FWHM`` and ``FWHM_IMAGE`` are in
+    pixels (the DECam community pipeline's and SExtractor's conventions),
+    ``FWHM_WORLD`` in degrees (SExtractor), ``SEEING`` in pixels for data
+    processed by CASU (UKIDSS WFCAM, VISTA: ``[pixels] Average FWHM``) and
+    ambiguous otherwise, as is ``PSF_FWHM``: an ambiguous keyword is not used.
+    """
+    headers = [h for h in headers if h is not None]
+    casu = _is_casu(headers)
+    compact, ncompact = _compact_radius(catalog)
+    tried = []
+    for keyword, default_unit in HEADER_SEEING_KEYWORDS:
+        holder = next((h for h in headers if keyword in h), None)
+        if holder is None:
+            tried.append(f"{keyword}: absent")
+            continue
+        value, comment = holder[keyword], str(holder.comments[keyword] or "")
+        shown = f"{keyword} = {value!r}" + (f" / {comment}" if comment else "")
+        if isinstance(value, bool) or not isinstance(value, (int, float)) or not np.isfinite(value) or value <= 0:
+            tried.append(f"{shown}: not a positive number")
+            continue
+        unit = _unit_of_comment(comment)
+        if unit is not None:
+            why = "as its comment says"
+        elif keyword == "SEEING" and casu:
+            unit, why = "pixel", "the CASU convention (UKIDSS WFCAM, VISTA)"
+        elif default_unit is not None:
+            unit, why = default_unit, f"the usual convention for {keyword}"
+        else:
+            tried.append(f"{shown}: refused, its comment names no unit (pixels or arcsec)")
+            continue
+        fwhm = float(value) if unit == "pixel" else float(value) * _ARCSEC_PER_UNIT[unit] / float(pixel_scale)
+        if not HEADER_FWHM_RANGE[0] <= fwhm <= HEADER_FWHM_RANGE[1]:
+            tried.append(f"{shown}: refused, {fwhm:.3g} pixels (in {unit}s, {why}) is outside the "
+                         f"{HEADER_FWHM_RANGE[0]:g}-{HEADER_FWHM_RANGE[1]:g} pixels a seeing FWHM can have")
+            continue
+        if np.isfinite(compact) and compact > 2.0 * _POINT_RADIUS_PER_FWHM * fwhm:
+            tried.append(f"{shown}: refused, {fwhm:.3g} pixels does not describe this image: a point source of "
+                         f"that FWHM has flux_radius <= {_POINT_RADIUS_PER_FWHM * fwhm:.2f} px, but 90 % of the "
+                         f"{ncompact} bright unflagged detections are larger than {compact:.2f} px")
+            continue
+        source = f"header keyword {keyword} = {value:g} ({unit}s, {why}" + \
+            (f"; {fwhm:.3g} pixels at {pixel_scale:.4g} arcsec/pixel)" if unit != "pixel" else ")")
+        tried.append(f"{shown}: used")
+        return HeaderSeeing(fwhm, keyword, source, tried)
+    return HeaderSeeing(None, None, "no usable header keyword", tried)
+
+
+# ---------------------------------------------------------------------------------------------
+# The seeing of a run, and the PSF its injections use
+# ---------------------------------------------------------------------------------------------
+
+def _without_advice(message: str) -> str:
+    """An :func:`estimate_fwhm` error without its closing advice (the caller gives its own)."""
+    message = message.split(" Pass the seeing FWHM")[0].rstrip(". ")
+    return message.removeprefix("cannot measure the seeing: ")
+
+
+def measure_seeing(data_sub, catalog, *, mask=None, saturation_flagged: bool = True, headers=(),
+                   pixel_scale: float | None = None, user_fwhm: float | None = None,
+                   fallback: tuple | None = None) -> dict:
+    """The seeing FWHM of an image, the Moffat beta of its stars, and where each came from.
+
+    In order: the user's FWHM (``--fwhm``); else the Moffat fits to the
+    stars (:func:`estimate_fwhm`); else the header keywords
+    (:func:`seeing_from_header`); else ``fallback``.  The stars are fitted in
+    every case, for their beta (and the sizes that
+    :func:`point_size_check` compares the injections with).
+
+    Parameters
+    ----------
+    data_sub, catalog, mask, saturation_flagged
+        As for :func:`estimate_fwhm`.
+    headers : sequence of astropy.io.fits.Header
+        Image HDU header, then primary header (see :func:`seeing_from_header`).
+    pixel_scale : float, optional
+        Arcsec per pixel (needed to read a FWHM given in arcsec).
+    user_fwhm : float, optional
+        The FWHM in pixels given by the user.
+    fallback : (float, str), optional
+        A FWHM in pixels and where it comes from, used when all else fails.
+
+    Returns
+    -------
+    dict
+        ``fwhm``, ``fwhm_err``, ``nstars`` and ``method`` (as
+        :meth:`FwhmEstimate.as_dict`), ``source`` (``"user"``, ``"fitted"``,
+        ``"header"`` or ``"fallback"``), ``fwhm_source`` (one sentence),
+        ``beta``, ``beta_at_bound`` and ``star_flux_radius`` of the star fits
+        (None when they failed), ``stars`` (what the star fits gave: ``"fitted"``
+        or their error), and ``tried`` (every attempt, in order).
+
+    Raises
+    ------
+    InputError
+        When neither the user, the stars, the header nor ``fallback`` give a
+        FWHM; the message lists everything that was tried.
+    """
+    tried = []
+    try:
+        est = estimate_fwhm(data_sub, catalog, mask=mask, saturation_flagged=saturation_flagged)
+        stars = est.as_dict()
+        stars_said = "fitted"
+        tried.append(f"Moffat fits to the image's stars: FWHM {est.fwhm:.3f} px, beta {est.beta:.2f} from "
+                     f"{est.nstars} stars")
+    except InputError as exc:
+        est, stars = None, {}
+        stars_said = _without_advice(str(exc))
+        tried.append(f"Moffat fits to the image's stars: {stars_said}")
+    out = {"fwhm_err": 0.0, "nstars": int(stars.get("nstars", 0)), "beta": stars.get("beta"),
+           "beta_at_bound": int(stars.get("beta_at_bound", 0)), "star_flux_radius": stars.get("star_flux_radius"),
+           "stars": stars_said, "tried": tried}
+    if user_fwhm is not None:
+        out.update(fwhm=float(user_fwhm), method="given by the user (--fwhm)", source="user",
+                   fwhm_source="user --fwhm")
+        return out
+    if est is not None:
+        out.update(fwhm=float(est.fwhm), fwhm_err=float(est.fwhm_err), method=est.method, source="fitted",
+                   fwhm_source=f"fitted from {est.nstars} stars")
+        return out
+    head = seeing_from_header(headers, pixel_scale, catalog=catalog) if pixel_scale else \
+        HeaderSeeing(None, None, "", ["not read: the pixel scale is unknown"])
+    tried.append("header keywords: " + "; ".join(head.tried))
+    if head.fwhm is not None:
+        out.update(fwhm=float(head.fwhm), method=f"{head.source}; the stars could not be measured ({stars_said})",
+                   source="header", fwhm_source=head.source)
+        return out
+    if fallback is not None:
+        out.update(fwhm=float(fallback[0]), method=str(fallback[1]), source="fallback", fwhm_source=str(fallback[1]))
+        return out
+    raise InputError(
+        "cannot determine the seeing FWHM of this image. Tried: "
+        + "; ".join(f"({i + 1}) {t}" for i, t in enumerate(tried))
+        + ". Pass the seeing FWHM in pixels with --fwhm (or ImageOptions(fwhm=...))."
+    )
+
+
+def injection_psf(injection, seeing: dict) -> dict:
+    """The PSF the injections use, and where each of its numbers came from.
+
+    Parameters
+    ----------
+    injection : comest_bayes.config.InjectionConfig
+        ``psf`` and ``moffat_beta`` (0: the stars' beta).
+    seeing : dict
+        From :func:`measure_seeing`.
+
+    Returns
+    -------
+    dict
+        ``model`` (``moffat``, ``gaussian``, ``kolmogorov`` or the FITS file),
+        ``fwhm_pix`` and ``fwhm_source``, ``beta`` and ``beta_source``
+        (Moffat only; else None), ``pixel_integrated`` (the profile is
+        convolved with the pixel: the FWHM and beta were fitted with a
+        pixel-integrated model), ``description`` (one sentence) and
+        ``warnings`` (e.g. a fitted beta at a bound of :data:`BETA_RANGE`).
+
+    Notes
+    -----
+    The Moffat beta is ``injection.moffat_beta`` when set (> 0); else the
+    median beta fitted on the image's stars; else
+    :data:`~comest_bayes.sources.DEFAULT_MOFFAT_BETA` (3), with the reason the
+    stars gave none.  A FITS PSF image ignores both.
+    """
+    from .sources import DEFAULT_MOFFAT_BETA
+
+    model = injection.psf.strip()
+    analytic = model.lower() in ("moffat", "gaussian", "kolmogorov")
+    fwhm = float(seeing["fwhm"])
+    out = {"model": model.lower() if analytic else model, "fwhm_pix": fwhm,
+           "fwhm_source": seeing.get("fwhm_source", seeing.get("method", "?")), "beta": None, "beta_source": None,
+           "pixel_integrated": bool(analytic and seeing.get("source") == "fitted"), "warnings": []}
+    warn = out["warnings"]
+    if model.lower() == "moffat":
+        fitted = seeing.get("beta")
+        if injection.moffat_beta > 0:
+            out["beta"], out["beta_source"] = float(injection.moffat_beta), "injection.moffat_beta (configuration)"
+        elif fitted is not None and np.isfinite(fitted):
+            out["beta"] = float(fitted)
+            out["beta_source"] = f"fitted from {seeing.get('nstars', 0)} stars (median)"
+            nbound = int(seeing.get("beta_at_bound", 0))
+            lo, hi = BETA_RANGE
+            if fitted <= 1.01 * lo or fitted >= 0.99 * hi:
+                side = "lower" if fitted <= 1.01 * lo else "upper"
+                meaning = ("the stars' wings are at least this heavy (crowding, a halo or a background error can "
+                           "also drive it there); stamps then reach far" if side == "lower" else
+                           "the stars' profile is Gaussian-like, narrower in the wings than any Moffat allowed")
+                warn.append(f"the fitted Moffat beta {fitted:.3g} sits at the {side} bound of its range "
+                            f"[{lo:g}, {hi:g}] ({nbound} of {seeing.get('nstars', 0)} stars at a bound): {meaning}; "
+                            f"injected with beta = {fitted:.3g}. Check the stars, or set injection.moffat_beta.")
+        else:
+            out["beta"] = DEFAULT_MOFFAT_BETA
+            why = seeing.get("stars") or "the stars were not fitted"
+            out["beta_source"] = f"default {DEFAULT_MOFFAT_BETA:g}: not measured ({why})"
+    if analytic:
+        shape = {"moffat": f"Moffat (FWHM {fwhm:.3f} px, beta {out['beta']:.3g})" if out["beta"] is not None else "",
+                 "gaussian": f"Gaussian (FWHM {fwhm:.3f} px)",
+                 "kolmogorov": f"Kolmogorov (FWHM {fwhm:.3f} px)"}[out["model"]]
+        out["description"] = shape + (" integrated over the pixel, as fitted on the stars"
+                                      if out["pixel_integrated"] else " as the effective PSF (sampled at pixel centres)")
+    else:
+        out["description"] = f"the PSF image {model}"
+        out["fwhm_source"] += " (used for the matching radius and separations only)"
+    return out
+
+
+def point_size_check(star_radius, injected_radius, *, tolerance: float = 0.05, min_sources: int = 5) -> dict:
+    """Do injected point sources look as large as the image's stars?
+
+    Compares the median ``flux_radius`` measured by the detector on the real
+    stars and on detected point-source injections.
+
+    Parameters
+    ----------
+    star_radius, injected_radius : array_like of float
+        ``flux_radius`` (pixels) of the stars and of the detected injections
+        (select both by the same signal-to-noise cut).
+    tolerance : float
+        Largest accepted relative difference of the medians (default 5 %).
+    min_sources : int
+        Fewer values on either side give ``status = "not enough"``.
+
+    Returns
+    -------
+    dict
+        ``stars`` and ``injected`` (median flux_radius in pixels, or None),
+        ``nstars``, ``ninjected``, ``ratio`` (injected / stars), ``ratio_err``
+        (from the standard errors of both medians, ``1.2533 std / sqrt(n)``),
+        ``tolerance`` and ``status``: ``"agree"``, ``"disagree"`` (the ratio
+        differs from 1 by more than the tolerance and by more than 3
+        ``ratio_err``) or ``"not enough"``.
+    """
+    def clean(values):
+        values = np.asarray(values, dtype=float)
+        return values[np.isfinite(values) & (values > 0)]
+
+    stars, injected = clean(star_radius), clean(injected_radius)
+    out = {"nstars": int(stars.size), "ninjected": int(injected.size), "stars": None, "injected": None,
+           "ratio": None, "ratio_err": None, "tolerance": float(tolerance), "status": "not enough"}
+    if stars.size < min_sources or injected.size < min_sources:
+        return out
+    ms, mi = float(np.median(stars)), float(np.median(injected))
+    es = 1.2533 * float(np.std(stars, ddof=1)) / np.sqrt(stars.size)
+    ei = 1.2533 * float(np.std(injected, ddof=1)) / np.sqrt(injected.size)
+    ratio = mi / ms
+    err = ratio * float(np.hypot(es / ms, ei / mi))
+    off = abs(ratio - 1.0)
+    out.update(stars=ms, injected=mi, ratio=ratio, ratio_err=err,
+               status="disagree" if off > tolerance and off > 3.0 * err else "agree")
+    return out

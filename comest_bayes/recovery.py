@@ -112,6 +112,10 @@ class SimContext:
     matching: MatchingConfig
     root_seed: int
     image_dir: str | None = None
+    #: Moffat beta of the injection PSF (0: ``injection.moffat_beta``, or 3 when that is 0 too).
+    psf_beta: float = 0.0
+    #: The analytic PSF is convolved with the pixel (its FWHM and beta were fitted pixel-integrated).
+    psf_pixel_integrated: bool = False
 
     @property
     def wcs(self):
@@ -183,10 +187,11 @@ def _table_cached(key: tuple) -> Table:
 
 
 @functools.lru_cache(maxsize=2)
-def _psf(injection: InjectionConfig, fwhm: float, pixel_scale: float):
+def _psf(injection: InjectionConfig, fwhm: float, pixel_scale: float, beta: float = 0.0,
+         pixel_integrated: bool = False):
     from .sources import make_psf
 
-    return make_psf(injection, fwhm, pixel_scale)
+    return make_psf(injection, fwhm, pixel_scale, beta=beta if beta > 0 else None, pixel_integrated=pixel_integrated)
 
 
 @functools.lru_cache(maxsize=1)
@@ -237,11 +242,12 @@ def _run_realization(task: RealizationTask) -> RealizationResult:
     base, mask, noise = _arrays(ctx.base_path, ctx.mask_path, ctx.noise_path)
     cosmos = _cosmos(ctx.injection) if kind == "cosmos" else None
     observed = _table(ctx.detection_path) if kind == "observed" else None
+    psf = _psf(ctx.injection, ctx.fwhm, ctx.pixel_scale, ctx.psf_beta, ctx.psf_pixel_integrated)
     truth = make_truth(kind, shape=base.shape, mask=mask, pixel_scale=ctx.pixel_scale, fwhm_pix=ctx.fwhm,
                        config=ctx.injection, mag_range=ctx.mag_range, rng=rng_for(ctx.root_seed, "inject", kind, index),
-                       wcs=ctx.wcs, zeropoint=ctx.zeropoint, observed_catalog=observed, cosmos=cosmos)
+                       wcs=ctx.wcs, zeropoint=ctx.zeropoint, observed_catalog=observed, cosmos=cosmos, psf=psf)
     t1 = time.perf_counter()
-    image, truth = render_truth(base, truth, psf=_psf(ctx.injection, ctx.fwhm, ctx.pixel_scale), config=ctx.injection,
+    image, truth = render_truth(base, truth, psf=psf, config=ctx.injection,
                                 pixel_scale=ctx.pixel_scale, gain=ctx.gain, zeropoint=ctx.zeropoint,
                                 rng_seed=int_seed_for(ctx.root_seed, "render", kind, index), cosmos=cosmos,
                                 wcs=ctx.wcs)

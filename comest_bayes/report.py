@@ -8,7 +8,8 @@ resource, so it opens anywhere, offline.  It holds
 * a summary per source kind: binned and posterior m50, m80, m90 with their
   68% intervals, the models;
 * the input facts (zero point, pixel scale, FWHM, gain, saturation, weight,
-  mask) and where each came from, and the depth references;
+  mask, the injected PSF) and where each came from, the comparison of the
+  sizes of injected point sources and stars, and the depth references;
 * image cutouts as in Figure 3 of Chiu, Desai & Liu (2016): observed image
   with detections, source-free image, one simulated image with recovered and
   missed injections and false detections;
@@ -264,6 +265,24 @@ def _facts_section(r: _Report) -> None:
         ["mask", f"{100 * float(facts.get('masked_fraction', 0.0)):.2f}% of the pixels masked",
          prov.get("mask", "NaN/inf pixels only")],
     ]
+    psf = (run.summary or {}).get("psf") or run.state.get("psf")
+    if psf:
+        where = f"FWHM: {psf.get('fwhm_source', '?')}"
+        if psf.get("beta_source"):
+            where += f"; beta: {psf['beta_source']}"
+        rows.append(["injected PSF", psf.get("description", psf.get("model", "?")), where])
+        for line in psf.get("warnings") or []:
+            rows.append(["injected PSF", "warning", line])
+    check = ((run.summary or {}).get("kinds") or {}).get("point", {}).get("size_check")
+    if check and check.get("ratio") is not None:
+        rows.append(["point-source size check",
+                     f"median flux_radius {check['injected']:.3f} px (injections) vs {check['stars']:.3f} px (stars): "
+                     f"ratio {check['ratio']:.3f} ± {check['ratio_err']:.3f}, {check['status']}",
+                     f"{check['ninjected']} detected point-source injections and {check['nstars']} stars with "
+                     f"SNR >= {check.get('snr_min', 20):g}; tolerance {100 * check['tolerance']:.0f}%"])
+    elif check:
+        rows.append(["point-source size check", "not enough sources",
+                     f"{check['ninjected']} detected point-source injections, {check['nstars']} stars"])
     det = (run.state.get("stages", {}).get("detect") or {})
     if det:
         cfg = run.config.detection

@@ -20,7 +20,7 @@ from comest_bayes.injection import StampRenderer, make_truth, render_truth
 from comest_bayes.likelihood import CompletenessModel, Covariates, compress
 from comest_bayes.matching import match_one_to_one
 from comest_bayes.seeding import rng_for
-from comest_bayes.sources import make_psf
+from comest_bayes.sources import DEFAULT_MOFFAT_BETA as SOURCES_DEFAULT_BETA, make_psf
 
 DEFAULT = filter_kernel("default")
 
@@ -167,7 +167,8 @@ def test_pipeline_fit_recovers_the_predicted_m50(case):
 
 
 def test_moffat_defaults_follow_the_injection_config():
-    assert DEFAULT_MOFFAT_BETA == InjectionConfig().moffat_beta == 3.0
+    # the configuration's 0 means "the stars' fitted beta"; 3 is what a run injects without one
+    assert DEFAULT_MOFFAT_BETA == SOURCES_DEFAULT_BETA == 3.0 and InjectionConfig().moffat_beta == 0.0
     assert InjectionConfig().psf == "moffat"
     for beta in (2.5, 3.0, 4.5):
         assert moffat_alpha(3.0, beta) == pytest.approx(galsim.Moffat(beta=beta, fwhm=3.0).scale_radius, rel=1e-12)
@@ -275,7 +276,8 @@ def test_pipeline_fit_recovers_the_predicted_m50_for_the_default_moffat_psf(case
     else:
         thresh, minarea = 1.5, 5
     kw = dict(zeropoint=30.0, fwhm_pix=fwhm, kernel=DEFAULT, thresh=thresh)
-    moffat = dict(psf="moffat", moffat_beta=InjectionConfig().moffat_beta)
+    # a pure-noise image has no stars: the run injects the default beta (the configuration's 0)
+    moffat = dict(psf="moffat", moffat_beta=DEFAULT_MOFFAT_BETA)
     first = predict(sigma=10.0, mc=False, **kw, **moffat)
     m, det, sigma = _simulate(fwhm, thresh, minarea, first.m50_peak, psf="moffat",
                               moffat_beta=InjectionConfig().moffat_beta)

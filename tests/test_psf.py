@@ -17,7 +17,8 @@ import pytest
 from comest_bayes.catalog import FLAG_SATURATED
 from comest_bayes.detection import detect_array
 from comest_bayes.errors import InputError
-from comest_bayes.psf import FwhmEstimate, estimate_fwhm, fit_moffat, moffat_image, select_stars
+from comest_bayes.psf import (BETA_RANGE, FwhmEstimate, estimate_fwhm, fit_moffat, injection_psf, measure_seeing,
+                              moffat_image, point_size_check, seeing_from_header, select_stars)
 
 SKY = 100.0
 SIGMA = 1.0
@@ -179,7 +180,7 @@ def test_as_dict_is_plain_json():
     est = FwhmEstimate(fwhm=3.2, fwhm_err=0.05, nstars=12, method="test", beta=float("nan"))
     d = est.as_dict()
     assert json.loads(json.dumps(d)) == {"fwhm": 3.2, "fwhm_err": 0.05, "nstars": 12, "method": "test",
-                                         "beta": None}
+                                         "beta": None, "beta_at_bound": 0, "star_flux_radius": None}
 
 
 def test_input_validation():
@@ -189,3 +190,163 @@ def test_input_validation():
         estimate_fwhm(data - det.background, det.catalog, mask=np.zeros((3, 3), bool))
     with pytest.raises(InputError, match="lacks the columns"):
         estimate_fwhm(data - det.background, det.catalog[["id", "x"]])
+
+
+# --------------------------------------------------------------------------- header seeing (issue 13)
+
+
+def _header(cards=(), **keywords):
+    """A FITS header from (keyword, value, comment) cards and keyword=value pairs."""
+    from astropy.io import fits
+
+    header = fits.Header()
+    for key, value, comment in cards:
+        header["HIERARCH " + key if len(key) > 8 else key] = (value, comment)
+    for key, value in keywords.items():
+        header[key] = value
+    return header
+
+
+@pytest.mark.parametrize("cards, extra, expected", [
+    # DECam community pipeline: pixels, as the comment says
+    ([("FWHM", 4.027092, "Median FWHM in pixels")], {}, 4.027092),
+    # UKIDSS (CASU): SEEING in pixels, with or without the unit in the comment
+    ([("SEEING", 2.1, "[pixels] Average FWHM")], {"INSTRUME": "WFCAM"}, 2.1),
+    ([("SEEING", 2.1, "Average FWHM")], {"TELESCOP": "UKIRT"}, 2.1),
+    # SEEING in arcsec where the comment says so: 0.9" at 0.25"/px
+    ([("SEEING", 0.9, "Seeing FWHM [arcsec]")], {}, 3.6),
+    ([("PSF_FWHM", 0.8, "PSF FWHM in arcsec")], {}, 3.2),
+    # SExtractor's names and units
+    ([("FWHM_IMAGE", 3.3, "")], {}, 3.3),
+    ([("FWHM_WORLD", 2.5e-4, "")], {}, 3.6),
+])
+def test_header_seeing_reads_the_keyword_in_its_unit(cards, extra, expected):
+    got = seeing_from_header([_header(cards, **extra)], 0.25)
+    assert got.fwhm == pytest.approx(expected, rel=1e-9)
+    assert got.keyword == cards[0][0] and got.keyword in got.source and got.tried[-1].endswith("used")
+
+
+def test_header_seeing_refuses_what_it_cannot_trust_and_says_why():
+    header = _header([("FWHM", 0.2, "Median FWHM in pixels"),   # too small to be a seeing
+                      ("SEEING", 0.9, "seeing"),                  # no unit, not CASU data
+                      ("PSF_FWHM", "n/a", "")])                   # not a number
+    got = seeing_from_header([header], 0.2)
+    assert got.fwhm is None
+    said = "\n".join(got.tried)
+    assert "FWHM = 0.2" in said and "outside the 0.7-100 pixels" in said
+    assert "SEEING = 0.9" in said and "names no unit" in said
+    assert "PSF_FWHM" in said and "not a positive number" in said
+    assert "FWHM_IMAGE: absent" in said and "FWHM_WORLD: absent" in said
+
+
+def test_header_seeing_takes_the_image_header_before_the_primary():
+    image = _header([("SEEING", 2.0, "[pixels]")])
+    primary = _header([("FWHM", 5.0, "Median FWHM in pixels"), ("SEEING", 9.0, "[pixels]")])
+    got = seeing_from_header([image, primary], 0.2)
+    assert (got.keyword, got.fwhm) == ("FWHM", 5.0)  # FWHM comes first in the order of keywords ...
+    got = seeing_from_header([_header([("SEEING", 2.0, "[pixels]")]), primary], 0.2, catalog=None)
+    assert got.fwhm == 5.0
+    del primary["FWHM"]
+    assert seeing_from_header([image, primary], 0.2).fwhm == 2.0  # ... and the image HDU's SEEING wins
+
+
+def test_header_seeing_is_checked_against_the_bright_detections():
+    # Measured (../shared/data/misc, a CTIO Mosaic2 cutout): FWHM = 1.69 "Median FWHM in pixels", while
+    # the bright unflagged detections have flux_radius 2.5-5 px; a point source of FWHM 1.69 px has at most
+    # 0.8 x 1.69 = 1.35 px.  A catalog of such sizes refuses the keyword; one of point sources accepts it.
+    from astropy.table import Table
+
+    header = _header([("FWHM", 1.69, "Median FWHM in pixels")])
+    big = Table({"flux_radius": np.linspace(2.5, 5.5, 12), "snr_auto": np.full(12, 50.0),
+                 "flags": np.zeros(12, np.int64)})
+    got = seeing_from_header([header], 0.26, catalog=big)
+    assert got.fwhm is None and "does not describe this image" in got.tried[0]
+    small = Table({"flux_radius": np.full(12, 1.0), "snr_auto": np.full(12, 50.0), "flags": np.zeros(12, np.int64)})
+    assert seeing_from_header([header], 0.26, catalog=small).fwhm == 1.69
+    assert seeing_from_header([header], 0.26, catalog=big[:4]).fwhm == 1.69  # too few to judge
+
+
+def test_measure_seeing_falls_back_on_the_header_and_lists_everything_it_tried():
+    data = make_field("moffat", 3.5, seed=3, stars=False, ngal=0)  # noise only: no star to fit
+    det = detect_array(data, zeropoint=30.0)
+    sub = data - det.background
+    header = _header([("FWHM", 3.4, "Median FWHM in pixels")])
+    got = measure_seeing(sub, det.catalog, headers=[header], pixel_scale=0.2)
+    assert got["source"] == "header" and got["fwhm"] == 3.4 and got["beta"] is None
+    assert "header keyword FWHM = 3.4 (pixels, as its comment says)" in got["fwhm_source"]
+    assert "star candidates found" in got["stars"]
+    with pytest.raises(InputError) as err:
+        measure_seeing(sub, det.catalog, headers=[_header()], pixel_scale=0.2)
+    message = str(err.value)
+    assert message.startswith("cannot determine the seeing FWHM")
+    for said in ("(1) Moffat fits to the image's stars: only 0 star candidates", "(2) header keywords: FWHM: absent",
+                 "SEEING: absent", "PSF_FWHM: absent", "FWHM_IMAGE: absent", "FWHM_WORLD: absent", "--fwhm"):
+        assert said in message, said
+    got = measure_seeing(sub, det.catalog, headers=[_header()], pixel_scale=0.2, fallback=(3.0, "the demo's seeing"))
+    assert (got["source"], got["fwhm"], got["fwhm_source"]) == ("fallback", 3.0, "the demo's seeing")
+
+
+def test_measure_seeing_fits_the_stars_for_their_beta_even_when_the_fwhm_is_given():
+    data = make_field("moffat", 3.5, seed=7, ngal=0)  # GalSim Moffat beta 3 stars
+    det = detect_array(data, zeropoint=30.0)
+    fitted = measure_seeing(data - det.background, det.catalog)
+    assert fitted["source"] == "fitted" and fitted["fwhm_source"] == f"fitted from {fitted['nstars']} stars"
+    assert fitted["fwhm"] == pytest.approx(3.5, rel=0.1) and fitted["beta"] == pytest.approx(3.0, rel=0.15)
+    # the stars' flux_radius, measured by the detector on the stars that entered the fit
+    assert 0.5 * 3.5 < fitted["star_flux_radius"] < 0.8 * 3.5
+    given = measure_seeing(data - det.background, det.catalog, user_fwhm=4.0)
+    assert (given["source"], given["fwhm"], given["fwhm_source"]) == ("user", 4.0, "user --fwhm")
+    assert given["beta"] == fitted["beta"]
+
+
+# --------------------------------------------------------------------------- the injected PSF (issue 13)
+
+
+def _seeing(**kw):
+    out = {"fwhm": 3.2, "source": "fitted", "fwhm_source": "fitted from 40 stars", "nstars": 40, "beta": 2.4,
+           "beta_at_bound": 0, "stars": "fitted"}
+    out.update(kw)
+    return out
+
+
+def test_injection_psf_uses_the_fitted_beta_integrated_over_the_pixel():
+    from comest_bayes.config import InjectionConfig
+
+    psf = injection_psf(InjectionConfig(), _seeing())
+    assert (psf["model"], psf["fwhm_pix"], psf["beta"], psf["pixel_integrated"]) == ("moffat", 3.2, 2.4, True)
+    assert psf["beta_source"] == "fitted from 40 stars (median)" and psf["warnings"] == []
+    assert "integrated over the pixel" in psf["description"]
+    # a beta set in the configuration wins
+    psf = injection_psf(InjectionConfig(moffat_beta=4.5), _seeing())
+    assert psf["beta"] == 4.5 and "configuration" in psf["beta_source"]
+    # not measured: beta 3, with the reason; a FWHM from the header is the effective PSF's
+    psf = injection_psf(InjectionConfig(), _seeing(source="header", fwhm_source="header keyword FWHM = 3.2", beta=None,
+                                                   stars="only 0 star candidates found"))
+    assert psf["beta"] == 3.0 and psf["beta_source"] == "default 3: not measured (only 0 star candidates found)"
+    assert not psf["pixel_integrated"] and psf["fwhm_source"] == "header keyword FWHM = 3.2"
+    # a Gaussian has no beta
+    psf = injection_psf(InjectionConfig(psf="gaussian"), _seeing())
+    assert psf["beta"] is None and psf["beta_source"] is None and psf["pixel_integrated"]
+
+
+@pytest.mark.parametrize("beta, side", [(BETA_RANGE[0], "lower"), (BETA_RANGE[1], "upper")])
+def test_a_fitted_beta_at_a_bound_is_warned_about(beta, side):
+    from comest_bayes.config import InjectionConfig
+
+    psf = injection_psf(InjectionConfig(), _seeing(beta=beta, beta_at_bound=31))
+    assert psf["beta"] == beta
+    assert len(psf["warnings"]) == 1 and f"at the {side} bound" in psf["warnings"][0]
+    assert "31 of 40 stars" in psf["warnings"][0]
+
+
+def test_point_size_check_known_answers():
+    rng = np.random.default_rng(4)
+    stars = 2.0 * (1.0 + 0.01 * rng.standard_normal(50))
+    same = point_size_check(stars, 2.0 * (1.0 + 0.02 * rng.standard_normal(300)))
+    assert same["status"] == "agree" and same["ratio"] == pytest.approx(1.0, abs=0.01)
+    # 7 % smaller, measured to 0.2 %: a disagreement; 3 % smaller: within the 5 % tolerance
+    small = point_size_check(stars, 1.86 * (1.0 + 0.02 * rng.standard_normal(300)))
+    assert small["status"] == "disagree" and small["ratio"] == pytest.approx(0.93, abs=0.01)
+    assert point_size_check(stars, 1.94 * np.ones(300))["status"] == "agree"
+    assert point_size_check(stars[:4], stars)["status"] == "not enough"
+    assert point_size_check(stars, [np.nan] * 10)["ninjected"] == 0

@@ -285,7 +285,9 @@ def simulated_image(run: RunData, kind: str, index: int = 0, *, prefer_saved: bo
         from astropy.wcs import WCS
 
         wcs = WCS(header, relax=True)
-    psf = make_psf(config.injection, float(facts["fwhm_pix"]), float(facts["pixel_scale_arcsec"]))
+    choice = (run.summary or {}).get("psf") or run.state.get("psf") or {}  # the run's injection PSF
+    psf = make_psf(config.injection, float(facts["fwhm_pix"]), float(facts["pixel_scale_arcsec"]),
+                   beta=choice.get("beta"), pixel_integrated=bool(choice.get("pixel_integrated", False)))
     cosmos = load_cosmos(config.injection) if kind == "cosmos" else None
     image, _ = render_truth(base, truth, psf=psf, config=config.injection,
                             pixel_scale=float(facts["pixel_scale_arcsec"]), gain=facts.get("gain"),
