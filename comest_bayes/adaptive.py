@@ -218,34 +218,52 @@ def run_sequential(simulate, fit, lo: float, hi: float, settings: AdaptiveSettin
 
 
 def package_fitter(*, image_shape, noise, mask, lo: float, hi: float, seed: int, model: str = "auto",
-                   kind: str = "point", ngrid: int = 161, nsamples: int = 1000, mag_bin: float = 0.1):
+                   kind: str = "point", ngrid: int = 161, nsamples: int = 1000, mag_bin: float = 0.1,
+                   reselect: float = 4.0):
     """A ``fit`` callable for :func:`run_sequential` that runs the package's own completeness fit.
 
     Each call fits every outcome so far with :func:`comest_bayes.fitting.fit_kind`
-    (``model``, default the ``auto`` selection; seed stream ``("design-fit", k)``)
-    and returns the :class:`PosteriorView` on ``ngrid`` magnitudes over
-    ``[lo, hi]`` and the ``(posterior, entry)`` pair.
+    (seed stream ``("design-fit", k)``) and returns the :class:`PosteriorView`
+    on ``ngrid`` magnitudes over ``[lo, hi]`` and the ``(posterior, entry)``
+    pair.  With a selection such as ``auto`` the models are compared on the
+    pilot and again whenever the outcomes have grown ``reselect`` times since
+    the last comparison; in between, the chosen model is refitted from the
+    previous posterior (:func:`comest_bayes.fitting.warm_state`: Newton steps
+    from its median, the spline's smoothness kept), which costs a fraction of
+    a selection.
     """
     import warnings
 
     from . import ratios as R
     from .config import RunConfig
-    from .fitting import fit_kind
+    from .fitting import fit_kind, warm_state
+    from .modelspec import load_spec
     from .seeding import int_seed_for
 
     edges = R.magnitude_edges(lo, hi, mag_bin)
     centers = 0.5 * (edges[:-1] + edges[1:])
     grid = np.linspace(lo, hi, int(ngrid))
+    selecting = load_spec(model).is_selection
+    state = {"warm": None, "selected_at": 0}
 
     def fit(table, k):
+        n = len(table)
+        warm = state["warm"]
+        if selecting and (warm is None or n >= reselect * state["selected_at"]):
+            warm = None
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")
-            post, entry = fit_kind(table, kind=kind, quantity="completeness", requested=model,
+            post, entry = fit_kind(table, kind=kind, quantity="completeness",
+                                   requested=model if warm is None else warm["model"],
                                    config=RunConfig(seed=int_seed_for(seed, "design-fit", k)),
                                    image_shape=image_shape, noise=noise, mask=mask, wcs_header=None,
-                                   mag_range=(lo, hi), mag_centers=centers)
+                                   mag_range=(lo, hi), mag_centers=centers, warm=warm)
             curves = post.average_curve(grid, nsamples=nsamples)
             m50 = post.magnitudes_at((0.5,), nsamples=nsamples)[0.5]
+        if warm is None:
+            state["selected_at"] = n
+        state["warm"] = warm_state(post)
+        entry["warm_refit"] = warm is not None
         return PosteriorView(grid=grid, curves=curves, m50=np.asarray(m50, float)), (post, entry)
 
     return fit

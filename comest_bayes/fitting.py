@@ -36,14 +36,14 @@ from . import ratios as R
 from .checks import shape_check, shape_warning
 from .config import RunConfig
 from .errors import InputError
-from .inference import fit
+from .inference import fit, fit_map
 from .likelihood import CompletenessModel, compress_for, covariate_warnings, covariates_from_outcomes
 from .modelspec import load_spec, resolve_candidates
 from .posterior import CompletenessPosterior, Footprint, average_crossings, average_prob, coarse_noise_map, footprint_sample
 from .seeding import int_seed_for, rng_for
 from .selection import choose_tau, select_model
 
-__all__ = ["fit_kind", "fit_task", "purity_outcomes", "MIN_OUTCOMES"]
+__all__ = ["fit_kind", "fit_task", "purity_outcomes", "warm_state", "MIN_OUTCOMES"]
 
 #: Fewer usable outcomes than this: the fit still runs but warns that the prior dominates.
 MIN_OUTCOMES = 20
@@ -158,9 +158,16 @@ def fit_task(task: dict) -> tuple:
     return post, entry
 
 
+def warm_state(post: CompletenessPosterior) -> dict:
+    """What a warm refit of the same model needs: parameter names, the posterior median, the spline's tau."""
+    return {"model": post.spec.name, "names": list(post.names),
+            "theta": [float(v) for v in np.median(np.asarray(post.samples, float), axis=0)],
+            "tau": None if post.meta.get("tau") is None else float(post.meta["tau"])}
+
+
 def fit_kind(outcomes: Table, *, kind: str, quantity: str, requested: str, config: RunConfig, image_shape,
              noise: np.ndarray, mask: np.ndarray, wcs_header: str | None, mag_range, mag_centers,
-             outcome_column: str = "detected", footprint_points=None,
+             outcome_column: str = "detected", footprint_points=None, warm: dict | None = None,
              log=lambda s: None) -> tuple[CompletenessPosterior, dict]:
     """Fit (or select and fit) the model of one kind and quantity.
 
@@ -179,6 +186,12 @@ def fit_kind(outcomes: Table, *, kind: str, quantity: str, requested: str, confi
         Average over these positions instead of every unmasked pixel of the
         maps (:meth:`Footprint.from_points`; e.g. the injections themselves
         when no noise map is known).
+    warm : dict, optional
+        A refit of the same kind with more data (the adaptive design's next
+        batch): ``{"names": [...], "theta": [...], "tau": float | None}``
+        from the previous posterior (:func:`warm_state`).  ``requested``
+        must then name one model (no selection); the MAP starts from
+        ``theta`` with Newton steps and a spline keeps the previous ``tau``.
 
     Returns
     -------
@@ -212,6 +225,8 @@ def fit_kind(outcomes: Table, *, kind: str, quantity: str, requested: str, confi
     mag_lo, mag_hi = float(mag_range[0]), float(mag_range[1])
     edges = R.magnitude_edges(mag_lo, mag_hi, config.ratios.mag_bin)
     selection = None
+    if warm is not None and spec.is_selection:
+        raise InputError(f"a warm refit needs one model, not the selection {requested!r}.")
     if spec.is_selection:
         probes = _probe_magnitudes(cov.m, outcome)
         quantities = targeted_quantities(cells, probes, mag_lo, mag_hi)
@@ -226,6 +241,15 @@ def fit_kind(outcomes: Table, *, kind: str, quantity: str, requested: str, confi
                         f"injections have a leverage above {chosen_loo.khat_threshold} (max {chosen_loo.khat_max:.2f}); "
                         "its leave-one-out score is approximate (the choice between models may be affected)")
         log(f"fit: {kind} {quantity}: selected {sel.chosen} among {[c.name for c in candidates]}")
+    elif warm is not None:
+        chosen_spec = spec
+        model = CompletenessModel(spec, data)
+        if warm.get("tau") is not None and spec.link == "spline":
+            model.tau = float(warm["tau"])
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", UserWarning)
+            mp = fit_map(model, nstarts=1, seed=seed, method="newton",
+                         start=model.warm_start(warm["names"], np.asarray(warm["theta"], float)))
     else:
         chosen_spec = spec
         model = CompletenessModel(spec, data)
