@@ -11,6 +11,7 @@ touched.
 from __future__ import annotations
 
 import time
+import warnings
 from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Callable
@@ -21,7 +22,7 @@ from astropy.table import Table
 
 from .config import RunConfig
 from .detection import DetectionResult, detect, filter_kernel
-from .errors import ConfigError, DetectionOverflowError
+from .errors import ComestError, ConfigError, DetectionOverflowError, InputError
 from .image import ImageData, load_image
 from .rundir import RunDirectory, file_checksum
 from .seeding import seed_sequence
@@ -52,12 +53,56 @@ class ImageOptions:
     mask_bits: int | None = None
 
     def load(self) -> ImageData:
+        """Read and validate the image and its companions (:func:`~comest_bayes.image.load_image`).
+
+        A file astropy cannot decode (cut short, a corrupt header, a data
+        size that does not match the header) raises
+        :class:`~comest_bayes.errors.InputError` naming the file, whatever
+        astropy raised, and astropy's own warnings about it become part of the
+        message instead of lines of their own.
+        """
         kw = asdict(self)
-        return load_image(kw.pop("path"), **kw)
+        with warnings.catch_warnings(record=True) as caught:
+            warnings.simplefilter("always")
+            try:
+                image = load_image(kw.pop("path"), **kw)
+            except ComestError:
+                raise
+            except (ValueError, TypeError, OSError, IndexError, KeyError, EOFError) as exc:
+                role, path = self._unreadable()
+                said = "; ".join(dict.fromkeys(" ".join(str(w.message).split()) for w in caught
+                                               if "truncat" in str(w.message).lower()))
+                raise InputError(
+                    f"{role} file {path!r} cannot be read as FITS: {' '.join(str(exc).split()) or type(exc).__name__}"
+                    + (f" ({said})" if said else "") + ". Is the file complete (an interrupted copy or download)?"
+                ) from None
+        for w in caught:  # not about a failure: show them as they came
+            warnings.warn_explicit(w.message, w.category, w.filename, w.lineno)
+        return image
+
+    def _unreadable(self) -> tuple[str, str]:
+        """(role, path) of the first input whose HDUs' data cannot all be read (the image when none fails)."""
+        for role, path in (("image", self.path), ("weight", self.weight), ("mask", self.mask)):
+            if path is None:
+                continue
+            try:
+                with warnings.catch_warnings():
+                    warnings.simplefilter("ignore")
+                    with fits.open(path, memmap=False, lazy_load_hdus=False) as hdul:
+                        for hdu in hdul:
+                            _ = hdu.data
+            except Exception:  # whatever astropy raises marks the culprit
+                return role, str(path)
+        return "image", str(self.path)
 
     def fingerprint(self) -> dict:
-        """Options plus the checksum of every input file."""
-        out = {"options": {k: (str(v) if k in ("path", "weight", "mask") and v is not None else v)
+        """Options plus the checksum of every input file.
+
+        Files are identified by their resolved absolute path and content
+        (SHA-256), so ``./in/image.fits`` and ``/data/in/image.fits`` name
+        the same run.
+        """
+        out = {"options": {k: (str(Path(v).resolve()) if k in ("path", "weight", "mask") and v is not None else v)
                            for k, v in asdict(self).items()}, "files": {}}
         for role in ("path", "weight", "mask"):
             value = getattr(self, role)
@@ -123,7 +168,8 @@ def _load_detection(run: RunDirectory, image: ImageData) -> DetectionResult:
 
 
 def run_pipeline(options: ImageOptions, config: RunConfig, out_dir, *,
-                 log: Callable[[str], None] = print, compute: ComputeOptions | None = None) -> RunResult:
+                 log: Callable[[str], None] = print, compute: ComputeOptions | None = None,
+                 fwhm_fallback: tuple[float, str] | None = None) -> RunResult:
     """Run every stage on one image, resuming a matching run in ``out_dir``.
 
     Parameters
@@ -138,16 +184,41 @@ def run_pipeline(options: ImageOptions, config: RunConfig, out_dir, *,
         Receives one human-readable line per stage.
     compute : ComputeOptions, optional
         Executor for the realizations (default: one local process).
+    fwhm_fallback : (float, str), optional
+        Seeing FWHM in pixels, and where it comes from, used when it cannot
+        be measured on the image (the demo knows its own seeing).
 
     Returns
     -------
     RunResult
+
+    Raises
+    ------
+    ComestError
+        Before anything is written, for every input that cannot give an
+        answer (see :mod:`comest_bayes.preflight`); a directory in use by a
+        live run is refused with its holder named.
     """
+    opened: list[RunDirectory] = []
+    try:
+        return _run_pipeline(options, config, out_dir, log=log, compute=compute, fwhm_fallback=fwhm_fallback,
+                             opened=opened)
+    finally:
+        for run in opened:
+            run.release()
+
+
+def _run_pipeline(options: ImageOptions, config: RunConfig, out_dir, *, log, compute, fwhm_fallback,
+                  opened: list) -> RunResult:
+    from .preflight import SMALLEST_SEEING_PIX, check_injection_count, check_memory
     from .psf import injection_psf, measure_seeing
     from .sourcefree import build_source_free
 
     # ---- validation: nothing is written before all of this passes -------------
     image = options.load()
+    # injections too few to give an answer, before the detection (the count without stamps)
+    check_injection_count(shape=image.shape, mask=image.mask, pixel_scale=image.pixel_scale, fwhm_pix=None,
+                          injection=config.injection)
     filter_kernel(config.detection.filter)
     if config.detection.backend == "sextractor":
         from .sextractor import find_sextractor
@@ -168,7 +239,7 @@ def run_pipeline(options: ImageOptions, config: RunConfig, out_dir, *,
             load_spec(config.fit.purity_model)
     fingerprint = {"input": options.fingerprint(), "config": config.to_dict()}
     run = RunDirectory(out_dir, fingerprint)
-    run.check()  # read-only: new run, resume, or refusal
+    run.check()  # read-only: new run, resume, or refusal (in use, another run, not writable)
     timings = {}
     header = output_header(image)
 
@@ -193,9 +264,15 @@ def run_pipeline(options: ImageOptions, config: RunConfig, out_dir, *,
         if det is None:
             det = _load_detection(run, image)
         t0 = time.perf_counter()
-        fwhm = measure_seeing(image.data - det.background, det.catalog, mask=image.mask,
-                              saturation_flagged=image.saturation is not None, headers=_headers(image),
-                              pixel_scale=image.pixel_scale, user_fwhm=image.fwhm)
+        try:
+            fwhm = measure_seeing(image.data - det.background, det.catalog, mask=image.mask,
+                                  saturation_flagged=image.saturation is not None, headers=_headers(image),
+                                  pixel_scale=image.pixel_scale, user_fwhm=image.fwhm, fallback=fwhm_fallback)
+        except InputError:
+            # an image too small for any injection says so, rather than that its seeing is unknown
+            check_injection_count(shape=image.shape, mask=image.mask, pixel_scale=image.pixel_scale,
+                                  fwhm_pix=SMALLEST_SEEING_PIX, injection=config.injection, fwhm_assumed=True)
+            raise
         psf_choice = injection_psf(config.injection, fwhm)
         fwhm_seconds = time.perf_counter() - t0
 
@@ -206,7 +283,18 @@ def run_pipeline(options: ImageOptions, config: RunConfig, out_dir, *,
             f"whose own PSF (FWHM about 0.12\") must be deconvolved, so the target PSF must be broader than "
             f"{COSMOS_MIN_FWHM_ARCSEC}\" but this image's FWHM is {fwhm_arcsec:.3f}\". Use the sersic or buldisk kinds.")
 
+    # ---- the injections can give an answer, in the memory there is ------------------------
+    budgets = check_injection_count(shape=image.shape, mask=image.mask, pixel_scale=image.pixel_scale,
+                                    fwhm_pix=float(fwhm["fwhm"]), injection=config.injection,
+                                    fwhm_given=image.fwhm is not None)
+    compute = compute or ComputeOptions()
+    check_memory(budgets, npix=int(np.prod(image.shape)), nsims=config.injection.nsims,
+                 workers=compute.workers if compute.executor != "serial" else 1)
+
     run.open()
+    opened.append(run)
+    if run.lock_note:
+        log(f"note: {run.lock_note}")
     if run.resumed:
         log(f"resuming the run in {run.path} (finished stages are skipped)")
     if det_seconds is not None:
@@ -249,7 +337,7 @@ def run_pipeline(options: ImageOptions, config: RunConfig, out_dir, *,
     timings["sourcefree"] = run.stage_info("sourcefree").get("seconds")
 
     # ---- injection and recovery ------------------------------------------------------
-    summary = _injection_stages(run, image, det, config, compute or ComputeOptions(), log, timings)
+    summary = _injection_stages(run, image, det, config, compute, log, timings)
 
     # a resumed run keeps the times of the stages it did not redo
     run.update(timings={**run.state.get("timings", {}), **timings})
@@ -400,7 +488,8 @@ def _injection_stages(run: RunDirectory, image: ImageData, det: DetectionResult,
         kinds[kind] = kind_summary(merged, edges, config, nreal=len(done), maps_file=maps_name, map_edges=map_edges)
         kinds[kind]["seconds"] = {k: round(v, 2) for k, v in stage_seconds[kind].items()}
         if kind == "point":
-            kinds[kind]["size_check"] = _point_size_check(image, det, merged["matched"], log)
+            stars = (run.stage_info("fwhm").get("estimate") or {}).get("star_rows")
+            kinds[kind]["size_check"] = _point_size_check(image, det, merged["matched"], log, star_rows=stars)
         c = kinds[kind]["counts"]
         # a realization may draw no injection at all (small field, low density): a valid result
         nempty = len(done) - len(np.unique(np.asarray(merged["injected"]["realization"]))) \
@@ -433,13 +522,20 @@ def _injection_stages(run: RunDirectory, image: ImageData, det: DetectionResult,
 SIZE_CHECK_SNR = 20.0
 
 
-def _point_size_check(image: ImageData, det: DetectionResult, matched, log) -> dict:
-    """Median flux_radius of detected point-source injections against the image's stars (SNR >= 20 both)."""
+def _point_size_check(image: ImageData, det: DetectionResult, matched, log, star_rows=None) -> dict:
+    """Median flux_radius of detected point-source injections against the image's stars (SNR >= 20 both).
+
+    The stars are those whose Moffat fits gave the seeing (``star_rows`` of the detection catalog);
+    without them (the fits failed, or a run older than them), the candidates on the stellar locus.
+    """
     from .psf import BAD_FLAGS, point_size_check, select_stars
 
-    sel = select_stars(det.catalog, shape=image.shape, saturation_flagged=image.saturation is not None,
-                       snr_min=SIZE_CHECK_SNR)
-    stars = np.asarray(det.catalog["flux_radius"], dtype=float)[sel.index]
+    if star_rows:
+        rows = np.asarray(star_rows, dtype=np.int64)
+    else:
+        rows = select_stars(det.catalog, shape=image.shape, saturation_flagged=image.saturation is not None,
+                            snr_min=SIZE_CHECK_SNR).index
+    stars = np.asarray(det.catalog["flux_radius"], dtype=float)[rows]
     if len(matched):
         ok = (np.asarray(matched["det_snr_auto"], dtype=float) >= SIZE_CHECK_SNR) \
             & ((np.asarray(matched["det_flags"], dtype=np.int64) & BAD_FLAGS) == 0) \

@@ -174,3 +174,48 @@ def test_cli_demo_small_runs_every_stage_and_resumes(tmp_path, capsys):
     # another seed in the same directory is refused
     assert main(["demo", "--out", str(out), "--size", "1000", "--seed", "5", "--nsims", "2",
                  "--model", "none", "--set", "fit.purity_model=none"]) == 2
+
+
+def test_the_same_image_by_another_path_resumes_and_the_lock_is_released(synthetic_fits, tmp_path, monkeypatch,
+                                                                           capsys):
+    image = synthetic_fits("good.fits", fwhm=3.0)
+    (tmp_path / "in").mkdir()
+    image.path.rename(tmp_path / "in" / "good.fits")
+    monkeypatch.chdir(tmp_path)
+    common = ["--out", "run", "--fwhm", "3", "--density", "100", "--nsims", "1", "--kinds", "point", "--model", "none",
+              "--set", "fit.purity_model=none", "--no-report", "--executor", "serial"]
+    assert main(["run", "./in/good.fits", *common]) == 0
+    assert not (tmp_path / "run" / "run.lock").exists()
+    capsys.readouterr()
+    assert main(["run", str(tmp_path / "in" / "good.fits"), *common]) == 0
+    printed = capsys.readouterr().out
+    assert "resuming" in printed and "detect: done earlier" in printed
+    state = json.loads((tmp_path / "run" / "run.json").read_text())
+    assert state["fingerprint"]["input"]["options"]["path"] == str(tmp_path / "in" / "good.fits")
+    assert not (tmp_path / "run" / "run.lock").exists()
+
+
+def test_a_failed_run_releases_its_lock(small_tile, tmp_path, monkeypatch):
+    _, paths = small_tile
+    out = tmp_path / "run"
+    import comest_bayes.sourcefree as sf
+
+    def boom(*a, **k):
+        raise RuntimeError("simulated crash")
+
+    monkeypatch.setattr(sf, "build_source_free", boom)
+    with pytest.raises(RuntimeError, match="simulated crash"):
+        run_pipeline(_options(paths), load_config(), out, log=lambda s: None)
+    assert (out / "run.json").exists() and not (out / "run.lock").exists()
+
+
+def test_cli_demo_at_a_small_size_runs(tmp_path, capsys):
+    # 512 px hold too few stars to measure the seeing: the demo uses the seeing it drew the tile with
+    out = tmp_path / "demo"
+    assert main(["demo", "--out", str(out), "--size", "512", "--nsims", "2", "--kinds", "point", "--model", "none",
+                 "--set", "fit.purity_model=none", "--no-report", "--executor", "serial"]) == 0
+    printed = capsys.readouterr().out
+    assert "fwhm: 3.46 px = 0.90 arcsec" in printed
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["kinds"]["point"]["counts"]["usable"] > 50
+    assert not (out / "run.lock").exists()
