@@ -11,15 +11,23 @@
     Fit number counts (a luminosity function) to the run's catalog or a user
     catalog, forward-modelling the completeness posterior and the photometric
     transfer; results under ``DIR/lf/<name>/`` and in ``summary.json``.
+``comest-bayes info DIR [--json]``
+    What a run holds (finished or partial), from its ``run.json`` and
+    ``summary.json`` alone: input facts, stages done, binned and model m50
+    with intervals, the chosen model, warnings and files.
 
 User mistakes (a missing file, an unreadable header, a run directory holding
-another run) are printed as one ``error:`` line without a traceback and exit
-with status 2; ``--debug`` shows the traceback.
+another run or in use by one) are printed as one ``error:`` line without a
+traceback and exit with status 2; an operating-system failure (a full disk, a
+file that cannot be read) or running out of memory is one ``error:`` line
+with the file and the reason, exit status 1.  ``--debug`` shows the
+traceback.
 """
 
 from __future__ import annotations
 
 import argparse
+import json
 import sys
 import time
 import warnings
@@ -142,6 +150,17 @@ def build_parser() -> argparse.ArgumentParser:
         lf.add_argument(flag, **kw)
     lf.add_argument("--no-report", action="store_true", help="do not rewrite report.html")
     _add_output_options(lf.add_argument_group("output"))
+
+    info = sub.add_parser("info", help="show what a run holds: inputs, stages done, m50 with intervals, model, "
+                                       "warnings, files",
+                          description="Print a run directory's facts from its run.json and summary.json alone, without "
+                                      "recomputing or writing anything: the input and where its zero point, pixel scale "
+                                      "and seeing came from, the stages done and their times, per source kind the "
+                                      "binned and the model 50%% completeness magnitude with 68%% and 95%% intervals, "
+                                      "the chosen model, the warnings and the files. Works on a partial run too.")
+    info.add_argument("dir", help="run directory (the --out of comest-bayes run or demo)")
+    info.add_argument("--json", action="store_true", help="print the facts as JSON instead of text")
+    _add_output_options(info.add_argument_group("output"))
 
     fit = sub.add_parser("fit", help="fit the completeness model to an outcome table from any injection pipeline",
                          description="Run the model selection and posterior of comest-bayes on a table of injection "
@@ -266,16 +285,29 @@ def _final_summary(result, log, report=None) -> None:
 
 
 def _cmd_demo(args, log) -> int:
-    from .demo import MASK_GAP, make_demo_tile, write_demo_tile
-    from .pipeline import ImageOptions, run_pipeline
     from .rundir import RunDirectory
 
     config = _config_from_args(args)
     if args.size < 256:
         raise ComestError(f"--size {args.size} is too small for a meaningful demo; use at least 256.")
     out = Path(args.out)
+    guard = RunDirectory(out, {})
     if not (out / "run.json").exists():
-        RunDirectory(out, {}).check()  # refuses a non-empty directory that is not a run
+        guard.check()  # refuses a non-empty directory that is not a run, one in use, an unwritable place
+    else:
+        guard.refuse_if_in_use()
+    compute = _compute_from_args(args)
+    guard.acquire()  # the tile is written under the run's lock too
+    try:
+        return _demo_locked(args, config, out, compute, log)
+    finally:
+        guard.release()
+
+
+def _demo_locked(args, config, out: Path, compute, log) -> int:
+    from .demo import MASK_GAP, demo_seeing_pix, make_demo_tile, write_demo_tile
+    from .pipeline import ImageOptions, run_pipeline
+
     inputs = out / "inputs"
     image_path = inputs / "demo_image.fits"
     marker = inputs / f"demo_seed{config.seed}_size{args.size}.done"
@@ -292,7 +324,9 @@ def _cmd_demo(args, log) -> int:
         log(f"demo: tile with {len(tile.truth)} true sources written to {inputs} in {time.perf_counter() - t0:.1f} s")
     options = ImageOptions(path=str(image_path), weight=str(inputs / "demo_weight.fits"), weight_type="ivar",
                            mask=str(inputs / "demo_mask.fits"), mask_bits=MASK_GAP)
-    result = run_pipeline(options, config, out, log=log, compute=_compute_from_args(args))
+    # a small tile may hold too few stars to measure the seeing; the demo knows the seeing it drew
+    fallback = (demo_seeing_pix(image_path), "the demo tile's own seeing (too few stars on it to measure)")
+    result = run_pipeline(options, config, out, log=log, compute=compute, fwhm_fallback=fallback)
     _final_summary(result, log, _report_after_run(result.out_dir, args, log))
     return 0
 
@@ -303,6 +337,14 @@ def _cmd_report(args, log) -> int:
     if args.size < 16:
         raise ComestError(f"--size {args.size} is too small for an image cutout; use at least 16 pixels.")
     write_report(args.dir, args.out, log=log, center=args.center, size=args.size)
+    return 0
+
+
+def _cmd_info(args, log) -> int:
+    from .info import format_info, run_info
+
+    info = run_info(args.dir)
+    print(json.dumps(info, indent=2) if args.json else format_info(info))
     return 0
 
 
@@ -344,17 +386,37 @@ def main(argv=None) -> int:
 
     # Warnings (unconverged samplers, prior-dominated fits) as one readable line each.
     warnings.formatwarning = lambda message, category, *rest, **kw: f"warning: {message}\n"
-    handler = {"run": _cmd_run, "demo": _cmd_demo, "report": _cmd_report, "lf": _cmd_lf, "fit": _cmd_fit}[args.command]
+    handler = {"run": _cmd_run, "demo": _cmd_demo, "report": _cmd_report, "lf": _cmd_lf, "fit": _cmd_fit,
+               "info": _cmd_info}[args.command]
     try:
         return handler(args, log)
     except ComestError as exc:
         if args.debug:
             raise
-        print(f"error: {exc}", file=sys.stderr)
+        print(f"error: {_one_line(exc)}", file=sys.stderr)
         return 2
+    except OSError as exc:  # the operating system refused: a full disk, an unreadable file, a vanished folder
+        if args.debug:
+            raise
+        from .rundir import os_reason
+
+        where = f" ({exc.filename!r})" if getattr(exc, "filename", None) else ""
+        print(f"error: {os_reason(exc)}{where}. Fix this, then rerun the same command to resume.", file=sys.stderr)
+        return 1
+    except MemoryError:
+        if args.debug:
+            raise
+        print("error: out of memory; lower --ncpu or --density (or use a machine with more memory), then rerun "
+              "the same command to resume.", file=sys.stderr)
+        return 1
     except KeyboardInterrupt:
         print("interrupted: rerun the same command to resume where it stopped.", file=sys.stderr)
         return 130
+
+
+def _one_line(exc: BaseException) -> str:
+    """An error message on one line (a message quoting a multi-line text keeps its words)."""
+    return " ".join(str(exc).split())
 
 
 if __name__ == "__main__":  # pragma: no cover

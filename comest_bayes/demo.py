@@ -206,6 +206,7 @@ __all__ = [
     "make_demo_tile",
     "demo_truth_catalog",
     "write_demo_tile",
+    "demo_seeing_pix",
     "noise_factor_map",
     "galaxy_number_density",
     "star_number_density",
@@ -943,8 +944,24 @@ def make_demo_tile(seed: int = 0, *, size: int = 3000, pixel_scale: float = 0.26
 # Writing
 # ---------------------------------------------------------------------------------------------
 
+def demo_seeing_pix(image_path) -> float:
+    """Seeing FWHM in pixels that a demo tile was drawn with (header ``SEEING`` / ``PIXSCALE``).
+
+    Raises
+    ------
+    InputError
+        The file is not a demo tile (no such keywords).
+    """
+    header = fits.getheader(image_path)
+    try:
+        return float(header["SEEING"]) / float(header["PIXSCALE"])
+    except (KeyError, TypeError, ValueError, ZeroDivisionError):
+        raise InputError(f"{str(image_path)!r} is not a demo tile: its header lacks SEEING and PIXSCALE.") from None
+
+
 def _atomic_write(hdul: fits.HDUList, path: Path) -> None:
-    tmp = path.with_name(f".{path.name}.{os.getpid()}.{uuid.uuid4().hex[:8]}.tmp")
+    # the ".tmp-" prefix of every temporary name of a run: what a kill leaves is removed on resume
+    tmp = path.with_name(f".tmp-{os.getpid()}-{uuid.uuid4().hex[:8]}-{path.name}")
     try:
         hdul.writeto(tmp, overwrite=False, output_verify="exception")
         os.replace(tmp, path)
