@@ -180,7 +180,8 @@ def test_as_dict_is_plain_json():
     est = FwhmEstimate(fwhm=3.2, fwhm_err=0.05, nstars=12, method="test", beta=float("nan"))
     d = est.as_dict()
     assert json.loads(json.dumps(d)) == {"fwhm": 3.2, "fwhm_err": 0.05, "nstars": 12, "method": "test",
-                                         "beta": None, "beta_at_bound": 0, "star_flux_radius": None}
+                                         "beta": None, "beta_at_bound": 0, "star_flux_radius": None,
+                                         "star_rows": []}
 
 
 def test_input_validation():
@@ -294,6 +295,8 @@ def test_measure_seeing_fits_the_stars_for_their_beta_even_when_the_fwhm_is_give
     assert fitted["fwhm"] == pytest.approx(3.5, rel=0.1) and fitted["beta"] == pytest.approx(3.0, rel=0.15)
     # the stars' flux_radius, measured by the detector on the stars that entered the fit
     assert 0.5 * 3.5 < fitted["star_flux_radius"] < 0.8 * 3.5
+    assert len(fitted["star_rows"]) == fitted["nstars"]
+    assert np.median(det.catalog["flux_radius"][fitted["star_rows"]]) == fitted["star_flux_radius"]
     given = measure_seeing(data - det.background, det.catalog, user_fwhm=4.0)
     assert (given["source"], given["fwhm"], given["fwhm_source"]) == ("user", 4.0, "user --fwhm")
     assert given["beta"] == fitted["beta"]
