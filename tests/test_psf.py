@@ -353,3 +353,34 @@ def test_point_size_check_known_answers():
     assert point_size_check(stars, 1.94 * np.ones(300))["status"] == "agree"
     assert point_size_check(stars[:4], stars)["status"] == "not enough"
     assert point_size_check(stars, [np.nan] * 10)["ninjected"] == 0
+
+
+@pytest.mark.realdata
+def test_real_headers_decam_fwhm_is_used_and_a_contradicted_one_is_refused(shared_data):
+    # No star can be fitted on either cutout (measured: 0 star candidates).  DECam's community pipeline
+    # writes FWHM = 4.02 "Median FWHM in pixels" in the image HDU (1); the CTIO Mosaic2 cutout says
+    # FWHM = 1.69 pixels in its primary header while its 12 bright unflagged detections all exceed 2.5 px
+    # (README: seeing about 5.8 px), so the keyword is refused and the error says why.
+    import warnings
+
+    from astropy.io import fits
+
+    from comest_bayes.config import DetectionConfig
+    from comest_bayes.detection import detect
+    from comest_bayes.image import load_image
+
+    def seeing(path, **kw):
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")  # TPV/astropy header notes are not what this test is about
+            image = load_image(path, **kw)
+        det = detect(image, DetectionConfig())
+        headers = [image.header] + ([fits.getheader(path, 0)] if image.hdu else [])
+        return measure_seeing(image.data - det.background, det.catalog, mask=image.mask, headers=headers,
+                              pixel_scale=image.pixel_scale)
+
+    got = seeing(shared_data / "decam" / "decam_r_N6_375x280_ooi.fits", zp=29.3)
+    assert got["source"] == "header" and got["fwhm"] == pytest.approx(4.022961)
+    assert got["fwhm_source"] == "header keyword FWHM = 4.02296 (pixels, as its comment says)"
+    with pytest.raises(InputError, match=r"FWHM = 1\.686972 / Median FWHM in pixels: refused, 1\.69 pixels does "
+                                         r"not describe this image"):
+        seeing(shared_data / "misc" / "ctio_mosaic2_I_cdfs_512px_tpv.fits", zp=30.0)
