@@ -28,6 +28,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import sys
 import time
 import warnings
@@ -395,6 +396,13 @@ def main(argv=None) -> int:
             raise
         print(f"error: {_one_line(exc)}", file=sys.stderr)
         return 2
+    except BrokenPipeError:  # the reader of the output went away (comest-bayes info DIR | head): nothing to say
+        try:
+            devnull = os.open(os.devnull, os.O_WRONLY)
+            os.dup2(devnull, sys.stdout.fileno())  # so that flushing at exit does not fail again
+        except (OSError, ValueError):
+            pass
+        return 1
     except OSError as exc:  # the operating system refused: a full disk, an unreadable file, a vanished folder
         if args.debug:
             raise

@@ -196,3 +196,15 @@ def test_info_on_a_partial_run_says_what_is_missing(tmp_path, capsys):
     assert main(["info", str(out)]) == 0
     text = capsys.readouterr().out
     assert "(running" in text and f"in use by process {os.getppid()} on {socket.gethostname()}" in text
+
+
+def test_a_reader_that_goes_away_is_no_error(finished_run, monkeypatch, capsys):
+    # `comest-bayes info DIR | head -1`: printing raises BrokenPipeError once head has exited
+    import comest_bayes.info as info_module
+
+    def closed_pipe(info):
+        raise BrokenPipeError(32, "Broken pipe")
+
+    monkeypatch.setattr(info_module, "format_info", closed_pipe)
+    assert main(["info", str(finished_run)]) == 1
+    assert capsys.readouterr().err == ""
