@@ -98,11 +98,11 @@ class ImageOptions:
     def fingerprint(self) -> dict:
         """Options plus the checksum of every input file.
 
-        Files are identified by their resolved absolute path and content
-        (SHA-256), so ``./in/image.fits`` and ``/data/in/image.fits`` name
-        the same run.
+        Files are identified by their content (SHA-256) and name, not by the
+        path as typed: ``./in/image.fits``, ``/data/in/image.fits`` and the
+        same file moved to another folder name the same run.
         """
-        out = {"options": {k: (str(Path(v).resolve()) if k in ("path", "weight", "mask") and v is not None else v)
+        out = {"options": {k: (Path(v).name if k in ("path", "weight", "mask") and v is not None else v)
                            for k, v in asdict(self).items()}, "files": {}}
         for role in ("path", "weight", "mask"):
             value = getattr(self, role)
@@ -216,6 +216,7 @@ def _run_pipeline(options: ImageOptions, config: RunConfig, out_dir, *, log, com
 
     # ---- validation: nothing is written before all of this passes -------------
     image = options.load()
+    log(image.gain_summary())  # which gain sets the injections' photon noise, and why (run.json: image.gain_decision)
     # injections too few to give an answer, before the detection (the count without stamps)
     check_injection_count(shape=image.shape, mask=image.mask, pixel_scale=image.pixel_scale, fwhm_pix=None,
                           injection=config.injection)

@@ -673,6 +673,23 @@ def test_pipeline_options_carry_the_decided_gain(write_fits):
     assert image.gain is None and image.facts()["gain_decision"]["contradicted"]
 
 
+def test_pipeline_logs_the_gain_first(write_fits, tmp_path):
+    from comest_bayes.config import RunConfig
+    from comest_bayes.pipeline import ImageOptions, run_pipeline
+
+    class Stop(Exception):
+        pass
+
+    def log(line):
+        raise Stop(line)  # the first line the run logs, before anything else happens
+
+    path = write_fits("adu.fits", poisson_image(4.0, 1000.0), gain_header(BUNIT="ADU", GAIN=4.0))
+    with pytest.raises(Stop, match=r"^gain: 4 e- per image unit from image header GAIN \(the image is in ADU; "
+                                   r"consistent with the effective gain 4\.\d+ measured from the sky noise\)$"):
+        run_pipeline(ImageOptions(path=str(path), fwhm=3.0), RunConfig(), tmp_path / "out", log=log)
+    assert not (tmp_path / "out").exists()
+
+
 # --------------------------------------------------------------------------- zero-point conventions
 
 
