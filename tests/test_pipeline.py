@@ -191,8 +191,14 @@ def test_the_same_image_by_another_path_resumes_and_the_lock_is_released(synthet
     printed = capsys.readouterr().out
     assert "resuming" in printed and "detect: done earlier" in printed
     state = json.loads((tmp_path / "run" / "run.json").read_text())
-    assert state["fingerprint"]["input"]["options"]["path"] == str(tmp_path / "in" / "good.fits")
+    assert state["fingerprint"]["input"]["options"]["path"] == "good.fits"  # content and name, not the path
     assert not (tmp_path / "run" / "run.lock").exists()
+    # the same file moved to another folder is the same input
+    (tmp_path / "moved").mkdir()
+    (tmp_path / "in" / "good.fits").rename(tmp_path / "moved" / "good.fits")
+    capsys.readouterr()
+    assert main(["run", "moved/good.fits", *common]) == 0
+    assert "detect: done earlier" in capsys.readouterr().out
 
 
 def test_a_failed_run_releases_its_lock(small_tile, tmp_path, monkeypatch):
