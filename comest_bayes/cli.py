@@ -56,6 +56,12 @@ def _add_config_options(p: argparse.ArgumentParser) -> None:
                         "(default point,buldisk)")
     g.add_argument("--nsims", type=int, default=None, help="realizations per kind (default 10)")
     g.add_argument("--density", type=float, default=None, help="injections per arcmin^2 (default 15)")
+    g.add_argument("--precision", type=float, default=None, metavar="MAG",
+                   help="adaptive injection: add batches of realizations, their magnitudes where the posterior is "
+                        "most uncertain, until the 68%% half-width of every kind's m50 is at most MAG "
+                        "(e.g. 0.02; docs/adaptive.md); --nsims is then not used")
+    g.add_argument("--max-nsims", type=int, default=None,
+                   help="adaptive injection: most realizations per kind (default 40)")
     g.add_argument("--model", default=None,
                    help="completeness model: a name from models/ (logistic, logistic_depth, ...), a TOML path, "
                         "'auto' (default: select the simplest the scene supports) or 'none'")
@@ -189,7 +195,7 @@ def build_parser() -> argparse.ArgumentParser:
 #: Command-line shortcuts: option attribute -> the configuration key it sets.
 _SHORTCUTS = {"backend": "detection.backend", "thresh": "detection.thresh", "minarea": "detection.minarea",
               "kinds": "injection.kinds", "nsims": "injection.nsims", "density": "injection.density",
-              "model": "fit.model"}
+              "model": "fit.model", "precision": "adaptive.precision", "max_nsims": "adaptive.max_nsims"}
 
 
 def _config_from_args(args):

@@ -45,6 +45,7 @@ else:  # pragma: no cover - exercised on Python 3.10 only
 from .errors import ConfigError
 
 __all__ = [
+    "AdaptiveConfig",
     "DetectionConfig",
     "SourceFreeConfig",
     "InjectionConfig",
@@ -422,6 +423,58 @@ class FitConfig:
 
 
 @dataclass(frozen=True)
+class AdaptiveConfig:
+    """Adaptive injection (``docs/adaptive.md``): batches designed from the posterior until a precision.
+
+    Off unless ``precision`` is set.  The first ``pilot_nsims`` realizations
+    of each kind inject uniformly (the published design); each later batch
+    of ``ceil(growth x realizations so far)`` realizations draws its
+    magnitudes from the design built from the current posterior, with
+    ``uniform_share`` of them uniform, until the 68% half-width of the kind's
+    image-average m50 is at most ``precision`` or ``max_nsims`` realizations
+    ran.  ``injection.nsims`` is then not used.
+
+    Parameters
+    ----------
+    precision : float
+        Target 68% half-width of m50 (mag); 0 (default) turns adaptive
+        injection off.
+    pilot_nsims : int
+        Uniform realizations per kind before the first design.
+    growth : float
+        Each batch holds this fraction of the realizations so far (at least 1).
+    max_nsims : int
+        Most realizations per kind.
+    uniform_share : float
+        Share of each adaptive batch drawn uniformly over the magnitude range.
+    target : {"m50", "curve"}
+        What the design aims at: the m50 or the whole transition.
+    """
+
+    precision: float = 0.0
+    pilot_nsims: int = 2
+    growth: float = 0.5
+    max_nsims: int = 40
+    uniform_share: float = 0.15
+    target: str = "m50"
+
+    @property
+    def enabled(self) -> bool:
+        return self.precision > 0
+
+    def __post_init__(self):
+        _check(self.precision >= 0, "adaptive.precision", self.precision,
+               "a target half-width of m50 in mag (e.g. 0.02), or 0 for the uniform design")
+        _check(isinstance(self.pilot_nsims, int) and self.pilot_nsims >= 1, "adaptive.pilot_nsims",
+               self.pilot_nsims, "an integer >= 1")
+        _check(self.growth > 0, "adaptive.growth", self.growth, "a positive fraction, e.g. 0.5")
+        _check(isinstance(self.max_nsims, int) and self.max_nsims >= self.pilot_nsims, "adaptive.max_nsims",
+               self.max_nsims, "an integer >= adaptive.pilot_nsims")
+        _check(0.0 <= self.uniform_share <= 1.0, "adaptive.uniform_share", self.uniform_share, "a fraction in [0, 1]")
+        _check(self.target in ("m50", "curve"), "adaptive.target", self.target, "m50 or curve")
+
+
+@dataclass(frozen=True)
 class RunConfig:
     """All settings of one run; one attribute per stage section."""
 
@@ -431,6 +484,7 @@ class RunConfig:
     matching: MatchingConfig = field(default_factory=MatchingConfig)
     ratios: RatiosConfig = field(default_factory=RatiosConfig)
     fit: FitConfig = field(default_factory=FitConfig)
+    adaptive: AdaptiveConfig = field(default_factory=AdaptiveConfig)
     seed: int = 0
 
     def __post_init__(self):
@@ -446,7 +500,7 @@ class RunConfig:
 
 
 _SECTIONS = {"detection": DetectionConfig, "sourcefree": SourceFreeConfig, "injection": InjectionConfig,
-             "matching": MatchingConfig, "ratios": RatiosConfig, "fit": FitConfig}
+             "matching": MatchingConfig, "ratios": RatiosConfig, "fit": FitConfig, "adaptive": AdaptiveConfig}
 
 
 def _check(ok: bool, key: str, value: Any, expected: str) -> None:

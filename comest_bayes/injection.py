@@ -243,7 +243,7 @@ def min_separation_pix(config: InjectionConfig, fwhm_pix: float | None, pixel_sc
 def make_truth(kind: str, *, shape, mask=None, pixel_scale: float, fwhm_pix: float | None,
                config: InjectionConfig, mag_range=None, rng: np.random.Generator, wcs=None,
                zeropoint: float, observed_catalog=None, cosmos: CosmosSample | None = None, psf=None,
-               noise=None, n: int | None = None, border_pix: float = 0.0) -> Table:
+               noise=None, n: int | None = None, border_pix: float = 0.0, mag_design=None) -> Table:
     """Draw the injections of one realization.
 
     Random draws, in this order, all from ``rng``: the count
@@ -289,6 +289,8 @@ def make_truth(kind: str, *, shape, mask=None, pixel_scale: float, fwhm_pix: flo
         Number of injections instead of the Poisson draw.
     border_pix : float
         Edge strip without injections, pixels.
+    mag_design : comest_bayes.design.MagnitudeDesign, optional
+        The magnitudes' density (an adaptive batch); default uniform in ``mag_range``.
 
     Returns
     -------
@@ -330,7 +332,7 @@ def make_truth(kind: str, *, shape, mask=None, pixel_scale: float, fwhm_pix: flo
     placement = place_sources(n, shape, rng, mask=mask, method=config.placement,
                               min_sep_pix=min_separation_pix(config, fwhm_pix, pixel_scale, kind), border_pix=border_pix)
     params = draw_parameters(kind, placement.n, config=config, mag_range=mag_range, rng=rng,
-                             pixel_scale=pixel_scale, cosmos=cosmos, population=population)
+                             pixel_scale=pixel_scale, cosmos=cosmos, population=population, mag_design=mag_design)
     m = placement.n
     ra, dec = _sky_positions(placement.x, placement.y, wcs)
     cols = {

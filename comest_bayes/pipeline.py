@@ -289,7 +289,8 @@ def _run_pipeline(options: ImageOptions, config: RunConfig, out_dir, *, log, com
                                     fwhm_pix=float(fwhm["fwhm"]), injection=config.injection,
                                     fwhm_given=image.fwhm is not None)
     compute = compute or ComputeOptions()
-    check_memory(budgets, npix=int(np.prod(image.shape)), nsims=config.injection.nsims,
+    check_memory(budgets, npix=int(np.prod(image.shape)),
+                 nsims=config.adaptive.max_nsims if config.adaptive.enabled else config.injection.nsims,
                  workers=compute.workers if compute.executor != "serial" else 1)
 
     run.open()
@@ -433,11 +434,20 @@ def _injection_stages(run: RunDirectory, image: ImageData, det: DetectionResult,
     sims = run.file("sims")
     for stale in sims.glob("*/.tmp-*"):  # a killed run's half-written realization files
         stale.unlink()
-    todo = [RealizationTask(ctx, kind, i) for kind in inj.kinds for i in range(inj.nsims)
-            if not realization_file(sims, kind, i).exists()]
-    ndone = len(inj.kinds) * inj.nsims - len(todo)
     failures: list[str] = []
     cpu = {"inject": 0.0}
+    nsims = {kind: inj.nsims for kind in inj.kinds}
+    adaptive_summary = None
+    if config.adaptive.enabled:
+        t0 = time.perf_counter()
+        nsims, adaptive_summary = _adaptive_injection(run, ctx, config, compute, log, det.noise, image.mask,
+                                                      mag_range, cpu)
+        timings["inject"] = round(time.perf_counter() - t0, 3)
+        timings["inject_cpu"] = round(cpu["inject"], 3)
+        timings["design_fit_cpu"] = round(cpu.get("design_fit", 0.0), 3)
+    todo = [RealizationTask(ctx, kind, i) for kind in inj.kinds for i in range(nsims[kind])
+            if not realization_file(sims, kind, i).exists()]
+    ndone = sum(nsims.values()) - len(todo)
     if todo:
         t0 = time.perf_counter()
         log(f"inject: {len(todo)} realizations to run ({ndone} done earlier) of kinds {', '.join(inj.kinds)} "
@@ -458,6 +468,9 @@ def _injection_stages(run: RunDirectory, image: ImageData, det: DetectionResult,
         timings["inject_cpu"] = round(cpu["inject"], 3)
         log(f"inject: {len(todo) - len(failures)} realizations in {timings['inject']:.1f} s"
             + (f"; {len(failures)} failed" if failures else ""))
+    elif adaptive_summary is not None:
+        log(f"inject: {ndone} realizations in adaptive batches ("
+            + ", ".join(f"{k} {n}" for k, n in nsims.items()) + f") in {timings['inject']:.1f} s")
     else:
         log(f"inject: all {ndone} realizations done earlier")
 
@@ -469,7 +482,7 @@ def _injection_stages(run: RunDirectory, image: ImageData, det: DetectionResult,
     run.file("maps").mkdir(exist_ok=True)
     stage_seconds = {}
     for kind in inj.kinds:
-        done = [i for i in range(inj.nsims) if realization_file(sims, kind, i).exists()]
+        done = [i for i in range(nsims[kind]) if realization_file(sims, kind, i).exists()]
         if not done:
             log(f"warning: no realization of kind {kind!r} finished; it is left out of summary.json")
             continue
@@ -515,6 +528,8 @@ def _injection_stages(run: RunDirectory, image: ImageData, det: DetectionResult,
         "kinds": kinds,
         "failed_realizations": failures,
     }
+    if adaptive_summary is not None:
+        summary["adaptive"] = adaptive_summary
     run.write_json("summary.json", summary)
     return summary
 
@@ -559,6 +574,120 @@ def _point_size_check(image: ImageData, det: DetectionResult, matched, log, star
         log(f"warning: psf check: point: {said}: the injected point sources do not look like the image's stars; "
             f"the completeness of point sources may be biased (see the 'psf' entry of run.json)")
     return check
+
+
+def _adaptive_injection(run: RunDirectory, ctx, config: RunConfig, compute: "ComputeOptions", log,
+                        noise: np.ndarray, mask: np.ndarray, mag_range, cpu: dict) -> tuple[dict, dict]:
+    """Realizations in batches designed from the posterior, per kind, until the precision (docs/adaptive.md).
+
+    Batch ``k`` of a kind draws its magnitudes from the design built from the outcomes of its batches
+    before ``k`` (:mod:`comest_bayes.design`), recorded in ``designs/<kind>_batch<k>.json`` before any of
+    its realizations runs.  A resumed run recomputes the same fits (seeded) and checks its designs
+    against the recorded ones; finished realizations are not run again.
+
+    Returns the number of realizations per kind and the ``summary.json`` entry ``adaptive``.
+    """
+    import json
+    import math
+
+    from .adaptive import package_fitter
+    from .design import MagnitudeDesign, design_from_draws, uniform_design
+    from .executors import run_tasks
+    from .recovery import RealizationTask, merge_realizations, realization_file, run_realization, write_realization
+    from .rundir import atomic_path
+    from .seeding import int_seed_for
+
+    ad = config.adaptive
+    lo, hi = float(mag_range[0]), float(mag_range[1])
+    sims = run.file("sims")
+    designs = run.file("designs")
+    designs.mkdir(exist_ok=True)
+    model = config.fit.model if config.fit.model != "none" else "auto"
+    state = {}
+    for kind in config.injection.kinds:
+        state[kind] = {"n": 0, "design": uniform_design(lo, hi), "batches": [], "done": False, "reached": False,
+                       "reason": "", "fit": package_fitter(image_shape=noise.shape, noise=noise, mask=mask, lo=lo,
+                                                           hi=hi, seed=int_seed_for(config.seed, "adaptive", kind),
+                                                           model=model, kind=kind, mag_bin=config.ratios.mag_bin)}
+    log(f"adaptive: batches until the 68% half-width of m50 is <= {ad.precision} mag per kind (pilot "
+        f"{ad.pilot_nsims} uniform realizations, then +{ad.growth:.0%} per batch, {ad.uniform_share:.0%} uniform, "
+        f"at most {ad.max_nsims} realizations)")
+    k = 0
+    while not all(st["done"] for st in state.values()):
+        tasks, span = [], {}
+        for kind, st in state.items():
+            if st["done"]:
+                continue
+            size = ad.pilot_nsims if st["n"] == 0 else max(1, math.ceil(ad.growth * st["n"]))
+            size = min(size, ad.max_nsims - st["n"])
+            design = st["design"]
+            path = designs / f"{kind}_batch{k}.json"
+            if path.exists():
+                recorded = MagnitudeDesign.from_dict(json.loads(path.read_text()))
+                if not np.allclose(recorded.prob, design.prob, rtol=1e-9, atol=1e-12):
+                    raise ConfigError(f"{path} records another design than this run computes for batch {k}: the run "
+                                      "directory was made with other settings or code; use a new --out.")
+            else:
+                with atomic_path(path) as tmp:
+                    tmp.write_text(json.dumps(design.to_dict()))
+            span[kind] = (st["n"], st["n"] + size)
+            for i in range(*span[kind]):
+                if not realization_file(sims, kind, i).exists():
+                    # the pilot keeps the published uniform draws (identical to a run without --precision)
+                    tasks.append(RealizationTask(ctx, kind, i, design=None if k == 0 else design.to_dict()))
+        failed = []
+
+        def on_result(task, result):
+            if result.error is not None:
+                failed.append(f"{result.kind} #{result.index}: {result.error.strip().splitlines()[-1]}")
+                return
+            cpu["inject"] = cpu.get("inject", 0.0) + float(result.seconds.get("cpu", 0.0))
+            write_realization(result, sims)
+
+        if tasks:
+            run_tasks(run_realization, tasks, on_result=on_result, executor=compute.executor, workers=compute.workers,
+                      scheduler=compute.scheduler, progress=compute.progress, desc=f"batch {k}")
+        if failed:
+            raise ComestError(f"adaptive batch {k}: {len(failed)} realization(s) failed ({failed[0]}); the design of "
+                              "the next batch needs them all. Rerun the same command to retry them (finished "
+                              "work is kept).")
+        for kind, (start, end) in span.items():
+            st = state[kind]
+            st["n"] = end
+            outcomes = merge_realizations(sims, kind, range(end))["outcomes"]
+            c0 = time.process_time()
+            view, (post, entry) = st["fit"](outcomes, k)
+            cpu["design_fit"] = cpu.get("design_fit", 0.0) + time.process_time() - c0
+            half = view.m50_halfwidth
+            rec = {"batch": k, "realizations": [start, end], "injections": int(len(outcomes)),
+                   "design": st["design"].target, "model": entry["name"], "warm_refit": entry["warm_refit"],
+                   "within_0.6_of_m50": (round(st["design"].fraction_within(view.m50_median - 0.6,
+                                                                            view.m50_median + 0.6), 3)
+                                         if math.isfinite(view.m50_median) else None),
+                   "m50": view.m50_median if math.isfinite(view.m50_median) else None,
+                   "halfwidth": half if math.isfinite(half) else None}
+            st["batches"].append(rec)
+            log(f"adaptive: {kind} batch {k} ({rec['design']} design, {end - start} realizations): {end} in all, "
+                f"{rec['injections']} injections, m50 "
+                + ("undefined" if rec["m50"] is None else f"{rec['m50']:.3f} +- {half:.4f}")
+                + f" (target {ad.precision}; {entry['name']})")
+            if half <= ad.precision:
+                st.update(done=True, reached=True, reason=f"m50 half-width {half:.4f} <= {ad.precision} after "
+                                                          f"{end} realizations ({rec['injections']} injections)")
+            elif end >= ad.max_nsims:
+                st.update(done=True, reason=f"stopped at the cap of {ad.max_nsims} realizations with m50 half-width "
+                                            f"{half:.4f} > {ad.precision}; raise --max-nsims or relax --precision")
+            else:
+                st["design"] = design_from_draws(view.grid, view.curves, lo, hi, target=ad.target, m50=view.m50,
+                                                 uniform_share=ad.uniform_share)
+            if st["done"]:
+                log(f"adaptive: {kind}: {'precision reached' if st['reached'] else 'precision NOT reached'}: "
+                    f"{st['reason']}")
+        k += 1
+    summary = {"precision": ad.precision, "target": ad.target, "uniform_share": ad.uniform_share,
+               "kinds": {kind: {"reached": st["reached"], "reason": st["reason"], "realizations": st["n"],
+                                "batches": st["batches"]} for kind, st in state.items()}}
+    return {kind: st["n"] for kind, st in state.items()}, summary
 
 
 def _fit_stages(run: RunDirectory, image: ImageData, det: DetectionResult, config: RunConfig, kinds: dict,

@@ -124,9 +124,12 @@ class SimContext:
 
 @dataclass(frozen=True)
 class RealizationTask:
+    """One realization to run; ``design`` (a :meth:`MagnitudeDesign.to_dict`) draws an adaptive batch's magnitudes."""
+
     context: SimContext
     kind: str
     index: int
+    design: dict | None = None
 
 
 @dataclass
@@ -243,9 +246,15 @@ def _run_realization(task: RealizationTask) -> RealizationResult:
     cosmos = _cosmos(ctx.injection) if kind == "cosmos" else None
     observed = _table(ctx.detection_path) if kind == "observed" else None
     psf = _psf(ctx.injection, ctx.fwhm, ctx.pixel_scale, ctx.psf_beta, ctx.psf_pixel_integrated)
+    design = None
+    if task.design is not None:
+        from .design import MagnitudeDesign
+
+        design = MagnitudeDesign.from_dict(task.design)
     truth = make_truth(kind, shape=base.shape, mask=mask, pixel_scale=ctx.pixel_scale, fwhm_pix=ctx.fwhm,
                        config=ctx.injection, mag_range=ctx.mag_range, rng=rng_for(ctx.root_seed, "inject", kind, index),
-                       wcs=ctx.wcs, zeropoint=ctx.zeropoint, observed_catalog=observed, cosmos=cosmos, psf=psf)
+                       wcs=ctx.wcs, zeropoint=ctx.zeropoint, observed_catalog=observed, cosmos=cosmos, psf=psf,
+                       mag_design=design)
     t1 = time.perf_counter()
     image, truth = render_truth(base, truth, psf=psf, config=ctx.injection,
                                 pixel_scale=ctx.pixel_scale, gain=ctx.gain, zeropoint=ctx.zeropoint,

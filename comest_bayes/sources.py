@@ -675,7 +675,7 @@ def _check_mag_range(mag_range) -> tuple[float, float]:
 
 def draw_parameters(kind: str, n: int, *, config: InjectionConfig, mag_range, rng: np.random.Generator,
                     pixel_scale: float, cosmos: "CosmosSample | None" = None,
-                    population: "ObservedPopulation | None" = None) -> dict:
+                    population: "ObservedPopulation | None" = None, mag_design=None) -> dict:
     """Magnitudes and shape parameters of ``n`` sources of one kind.
 
     The random draws happen in a fixed order (magnitudes, then sizes, axis
@@ -699,6 +699,10 @@ def draw_parameters(kind: str, n: int, *, config: InjectionConfig, mag_range, rn
         Required for ``cosmos``.
     population : ObservedPopulation, optional
         Required for ``observed`` (see :func:`fit_observed_population`).
+    mag_design : comest_bayes.design.MagnitudeDesign, optional
+        Draw the magnitudes from this density (an adaptive batch) instead of
+        uniformly in ``mag_range`` (not for ``observed``, whose magnitudes
+        follow the image's counts).
 
     Returns
     -------
@@ -718,6 +722,8 @@ def draw_parameters(kind: str, n: int, *, config: InjectionConfig, mag_range, rn
             raise InputError("kind 'observed' needs the population fitted to the image's detection catalog: "
                              "pass observed_catalog= (see fit_observed_population).")
         out["mag"] = draw_magnitudes(n, mag_range, rng, slope=population.slope)
+    elif mag_design is not None:
+        out["mag"] = mag_design.sample(n, rng)
     else:
         out["mag"] = draw_magnitudes(n, mag_range, rng)
 
