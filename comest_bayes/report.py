@@ -590,6 +590,46 @@ def _lf_section(r: _Report) -> None:
                  lambda fig=fig: fig)
 
 
+def _adaptive_section(r: _Report) -> None:
+    ad = (r.run.summary or {}).get("adaptive")
+    if not ad:
+        return
+    r.h2("adaptive", "Adaptive injection")
+    r.p(f"Batches of realizations whose magnitudes follow the current posterior (docs/adaptive.md), "
+        f"{ad.get('uniform_share', 0):.0%} of each uniform, until the 68% half-width of m50 reaches "
+        f"{ad.get('precision')} mag. The binned ratios stay valid per bin, but bins far from m50 hold fewer "
+        "injections than a uniform run's, so their intervals are wider (see the counts per bin above).")
+    rows = []
+    for kind, info in (ad.get("kinds") or {}).items():
+        for b in info.get("batches", []):
+            rows.append([kind, str(b["batch"]), b["design"], f"{b['realizations'][0]}-{b['realizations'][1] - 1}",
+                         str(b["injections"]), _num(b.get("m50"), "{:.3f}"), _num(b.get("halfwidth"), "{:.4f}"),
+                         _num(b.get("within_0.6_of_m50"), "{:.0%}")])
+    r.table(["kind", "batch", "design", "realizations", "injections so far", "m50", "68% half-width",
+             "batch within 0.6 mag of m50"], rows, numeric=(1, 4, 5, 6, 7))
+    for kind, info in (ad.get("kinds") or {}).items():
+        r.p(f"{kind}: {'precision reached' if info.get('reached') else 'precision NOT reached'}: "
+            f"{info.get('reason', '')}", None if info.get("reached") else "warn")
+
+    def make():
+        import matplotlib.pyplot as plt
+
+        fig, ax = plt.subplots(figsize=(6, 4))
+        for kind, info in (ad.get("kinds") or {}).items():
+            pts = [(b["injections"], b["halfwidth"]) for b in info.get("batches", []) if b.get("halfwidth")]
+            if pts:
+                ax.loglog(*zip(*pts), "o-", label=kind)
+        ax.axhline(ad.get("precision"), color="k", lw=0.8, ls=":", label="target")
+        ax.set_xlabel("injections")
+        ax.set_ylabel("68% half-width of m50 (mag)")
+        ax.grid(alpha=0.3, which="both")
+        ax.legend()
+        return fig
+
+    r.figure("adaptive_precision", "Precision against injections",
+             "The 68% half-width of the image-average m50 after each batch.", make)
+
+
 def _config_text(config: dict) -> str:
     import json
 
@@ -695,6 +735,7 @@ def write_report(run_dir, out=None, *, log: Callable[[str], None] | None = None,
         _magnitudes_section(r)
         _maps_section(r)
         _model_sections(r)
+        _adaptive_section(r)
         _lf_section(r)
         _config_section(r)
         _timings_section(r)

@@ -111,3 +111,14 @@ def test_the_pilot_is_the_published_design_and_the_transfer_does_not_depend_on_t
         pytest.skip("too few bright matched injections in one of the groups")
     se = 1.25 * np.hypot(np.std(a_) / np.sqrt(a_.size), np.std(b_) / np.sqrt(b_.size))
     assert abs(np.median(a_) - np.median(b_)) < 4 * se + 0.005
+
+
+def test_the_report_charts_precision_against_injections(adaptive_run):
+    from comest_bayes.report import write_report
+
+    out, _ = adaptive_run
+    html = write_report(out).read_text()
+    assert 'id="adaptive"' in html and "68% half-width" in html
+    assert (out / "figures" / "adaptive_precision.png").is_file()
+    ad = json.loads((out / "summary.json").read_text())["adaptive"]["kinds"]["point"]
+    assert ("precision reached" if ad["reached"] else "precision NOT reached") in html
