@@ -16,7 +16,7 @@ def test_example_config_loads_and_differs_from_defaults_only_where_it_says():
     assert cfg.detection.phot_apertures == (5.0, 10.0)
     # everything else in the file restates a default
     assert dataclasses.replace(cfg.detection, phot_apertures=default.detection.phot_apertures) == default.detection
-    for section in ("sourcefree", "injection", "matching", "ratios"):
+    for section in ("sourcefree", "injection", "matching", "ratios", "adaptive"):
         assert getattr(cfg, section) == getattr(default, section), section
 
 
