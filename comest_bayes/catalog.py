@@ -25,7 +25,8 @@ import numpy as np
 from astropy.table import Table
 
 __all__ = ["DETECTION_COLUMNS", "FLAG_MASKED", "FLAG_BLENDED", "FLAG_SATURATED", "FLAG_EDGE",
-           "FLAG_APER_TRUNC", "FLAG_DEBLEND_OVERFLOW", "make_catalog", "flux_to_mag", "derived_columns"]
+           "FLAG_APER_TRUNC", "FLAG_DEBLEND_OVERFLOW", "IMAGE_UNIT_COLUMNS", "make_catalog", "flux_to_mag",
+           "derived_columns", "fits_unit", "set_image_units"]
 
 FLAG_MASKED = 1
 FLAG_BLENDED = 2
@@ -64,6 +65,60 @@ DETECTION_COLUMNS = {
     "noise": ("f8", None, "noise sigma the threshold was relative to, at the peak pixel, image units"),
     "flags": ("i8", None, "SExtractor-style FLAGS bits (see comest_bayes.catalog)"),
 }
+
+
+#: Columns in the image's own unit (its ``BUNIT``), in the detection catalog, the injected truth and the
+#: outcome tables; a ``det_`` prefix (measured columns next to an injection) counts too.
+IMAGE_UNIT_COLUMNS = ("peak", "flux_iso", "flux_auto", "fluxerr_auto", "flux_aper", "fluxerr_aper", "background",
+                      "noise", "flux", "local_noise")
+
+
+#: Common ``BUNIT`` words that are not FITS unit names, and the FITS unit they mean (case-insensitive).
+_BUNIT_ALIASES = {"adu": "adu", "counts": "count", "cts": "count", "s": "s", "sec": "s"}
+
+
+def fits_unit(bunit):
+    """The astropy unit a FITS ``BUNIT`` names, or None when it names none the FITS standard knows.
+
+    ``MJy/sr``, ``ct/s`` and ``Jy/pix`` are FITS units, and so are the common
+    spellings ``ADU`` and ``COUNTS/S`` once read as ``adu`` and ``count/s``;
+    electrons, ``DN`` and nanomaggies have no FITS unit (a column given one
+    makes astropy warn on every write or read).
+    """
+    import re
+    import warnings
+
+    import astropy.units as u
+
+    if not isinstance(bunit, str) or not bunit.strip():
+        return None
+    text = re.sub(r"[A-Za-z]+-?", lambda m: _BUNIT_ALIASES.get(m.group(0).lower(), m.group(0)), bunit.strip())
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        try:
+            unit = u.Unit(text, format="fits")
+        except (ValueError, TypeError):
+            return None
+    return None if isinstance(unit, u.UnrecognizedUnit) else unit
+
+
+def set_image_units(table: Table, bunit) -> Table:
+    """Give the image-unit columns (:data:`IMAGE_UNIT_COLUMNS`) of ``table`` the image's ``BUNIT``, in place.
+
+    A ``BUNIT`` that is not a FITS unit (see :func:`fits_unit`) leaves them
+    without one; either way the raw ``BUNIT`` is kept as ``table.meta["IMGUNIT"]``
+    so that a reader of the file knows what "image units" means.  Returns
+    ``table``.
+    """
+    if not isinstance(bunit, str) or not bunit.strip():
+        return table
+    unit = fits_unit(bunit)
+    if unit is not None:
+        for name in table.colnames:
+            if name in IMAGE_UNIT_COLUMNS or (name.startswith("det_") and name[4:] in IMAGE_UNIT_COLUMNS):
+                table[name].unit = unit
+    table.meta["IMGUNIT"] = bunit.strip()
+    return table
 
 
 def flux_to_mag(flux, fluxerr, zeropoint):

@@ -21,6 +21,7 @@ from astropy.io import fits
 from astropy.table import Table
 
 from .config import RunConfig
+from .catalog import set_image_units
 from .detection import DetectionResult, detect, filter_kernel
 from .errors import ComestError, ConfigError, DetectionOverflowError, InputError
 from .image import ImageData, load_image
@@ -145,11 +146,18 @@ class ComputeOptions:
         return "1 process"
 
 
-def output_header(image: ImageData, extra: dict | None = None) -> fits.Header:
-    """Header for an output image: the input's WCS plus provenance keywords."""
+def output_header(image: ImageData, extra: dict | None = None, *, image_units: bool = False) -> fits.Header:
+    """Header for an output image: the input's WCS plus provenance keywords.
+
+    ``image_units=True`` (an image in the input's pixel unit: the source-free
+    and bright-and-big images, the background, RMS and noise maps) also
+    carries the input's ``BUNIT`` when it has one.
+    """
     header = fits.Header()
     if image.wcs is not None:
         header.update(image.wcs.to_header(relax=True))
+    if image_units and image.bunit:
+        header["BUNIT"] = (str(image.bunit), "pixel unit, as in the input image")
     header["MAGZERO"] = (image.zeropoint, "photometric zero point (mag)")
     header["ORIGIN"] = "comest-bayes"
     for key, value in (extra or {}).items():
@@ -300,9 +308,10 @@ def _run_pipeline(options: ImageOptions, config: RunConfig, out_dir, *, log, com
     if run.resumed:
         log(f"resuming the run in {run.path} (finished stages are skipped)")
     if det_seconds is not None:
-        files = [run.write_table("detection.fits", det.catalog)]
-        for name in ("segmentation", "background", "rms", "noise"):
-            files.append(run.write_image(f"{name}.fits", getattr(det, name), header))
+        files = [run.write_table("detection.fits", set_image_units(det.catalog, image.bunit), extname="DETECTIONS")]
+        files.append(run.write_image("segmentation.fits", det.segmentation, header))
+        for name in ("background", "rms", "noise"):
+            files.append(run.write_image(f"{name}.fits", getattr(det, name), output_header(image, image_units=True)))
         run.record_stage("detect", files=files, seconds=det_seconds, meta=det.meta, nsources=len(det.catalog))
         log(f"detect: {len(det.catalog)} sources with {config.detection.backend} "
             f"(threshold {config.detection.thresh} x {det.meta.get('noisemod', 'sigma')} noise) in {det_seconds:.1f} s")
@@ -329,9 +338,11 @@ def _run_pipeline(options: ImageOptions, config: RunConfig, out_dir, *, log, com
         t0 = time.perf_counter()
         sf = build_source_free(image.data, det, mask=image.mask, fwhm=image.fwhm, config=config.sourcefree,
                                seed=seed_sequence(config.seed, "sourcefree"))
-        files = [run.write_image("sfi.fits", sf.sfi, output_header(image, {"IMAGETYP": "source-free"}))]
+        files = [run.write_image("sfi.fits", sf.sfi, output_header(image, {"IMAGETYP": "source-free"},
+                                                                   image_units=True))]
         if sf.bnb is not None:
-            files.append(run.write_image("bnb.fits", sf.bnb, output_header(image, {"IMAGETYP": "bright-and-big"})))
+            files.append(run.write_image("bnb.fits", sf.bnb, output_header(image, {"IMAGETYP": "bright-and-big"},
+                                                                           image_units=True)))
         dt = time.perf_counter() - t0
         run.record_stage("sourcefree", files=files, seconds=dt, meta=sf.meta, kept_ids=sf.kept_ids)
         log(f"sourcefree: replaced {100 * sf.removed.mean():.1f}% of the pixels"
@@ -410,7 +421,7 @@ def _injection_stages(run: RunDirectory, image: ImageData, det: DetectionResult,
         bdet = detect_with_backend(base, mask=image.mask, weight_noise=weight_noise, zeropoint=image.zeropoint,
                                    gain=image.gain, saturation=image.saturation, wcs=image.wcs,
                                    config=config.detection)
-        files = [run.write_table("baseline.fits", bdet.catalog),
+        files = [run.write_table("baseline.fits", set_image_units(bdet.catalog, image.bunit)),
                  run.write_image("mask.fits", image.mask.astype(np.uint8), header)]
         mag_range = tuple(inj.mag_range) if inj.mag_range else _auto_mag_range(image, det, _psf_nea(config, image, psf_choice))
         run.record_stage("baseline", files=files, seconds=time.perf_counter() - t0, nsources=len(bdet.catalog),
@@ -489,7 +500,7 @@ def _injection_stages(run: RunDirectory, image: ImageData, det: DetectionResult,
         merged = merge_realizations(sims, kind, done)
         stage_seconds[kind] = merged.pop("seconds")
         for name in ("injected", "matched", "unmatched", "false", "outcomes"):
-            run.write_table(f"catalogs/{kind}_{name}.fits", merged[name])
+            run.write_table(f"catalogs/{kind}_{name}.fits", set_image_units(merged[name], image.bunit))
         comp = kind_binned(merged, edges, config)["completeness"]
         m50 = R.magnitude_at(comp, 0.5)
         map_edges = (np.asarray(config.ratios.map_mag_edges, float) if config.ratios.map_mag_edges
@@ -738,6 +749,7 @@ def _fit_stages(run: RunDirectory, image: ImageData, det: DetectionResult, confi
             if quantity == "completeness" and post.spec.spatial != "none":
                 step = max(1, int(round(config.fit.map_step_arcmin * 60.0 / image.pixel_scale)))
                 med, sd, header = post.m50_map(step)
+                header["BUNIT"] = ("mag", "50% completeness magnitude")
                 hdul = fits.HDUList([fits.PrimaryHDU(), fits.ImageHDU(med.astype(np.float32), header, name="M50"),
                                      fits.ImageHDU(sd.astype(np.float32), header, name="M50_SD")])
                 name = f"maps/{kind}_m50.fits"

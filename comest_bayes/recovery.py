@@ -358,14 +358,23 @@ def write_realization(result: RealizationResult, directory) -> Path:
     return path
 
 
+def _table_with_units(hdu) -> Table:
+    """The rows of a realization's table HDU as they were written, with the column units (TUNITn) it carries."""
+    table = Table(hdu.data)
+    for col in hdu.columns:
+        if col.unit:
+            table[col.name].unit = col.unit
+    return table
+
+
 def merge_realizations(directory, kind: str, indices) -> dict:
     """Read the realizations of one kind and build the four catalogs plus the outcome table."""
     truths, dets, seconds = [], [], {}
     for i in indices:
         path = realization_file(directory, kind, i)
         with fits.open(path) as hdul:
-            truths.append(Table(hdul["TRUTH"].data))
-            dets.append(Table(hdul["DETECTIONS"].data))
+            truths.append(_table_with_units(hdul["TRUTH"]))
+            dets.append(_table_with_units(hdul["DETECTIONS"]))
             for key, value in hdul[0].header.items():
                 if key.startswith("T_"):
                     seconds[key[2:].lower()] = seconds.get(key[2:].lower(), 0.0) + float(value)

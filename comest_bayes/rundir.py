@@ -465,9 +465,18 @@ class RunDirectory:
             fits.PrimaryHDU(data=array, header=header).writeto(tmp)
         return name
 
-    def write_table(self, name: str, table) -> str:
+    def write_table(self, name: str, table, extname: str | None = None) -> str:
+        """Write ``table`` as the binary-table HDU 1 of the FITS file ``name`` (after an empty primary HDU).
+
+        The table HDU is named ``extname`` (default: the file name's stem in
+        capitals, ``catalogs/point_matched.fits`` -> ``POINT_MATCHED``); column
+        units are written as ``TUNITn`` and ``table.meta`` as header keywords,
+        as :meth:`astropy.table.Table.write` does.
+        """
+        hdu = fits.table_to_hdu(table, character_as_bytes=True)
+        hdu.name = (extname or Path(name).stem).upper()
         with atomic_path(self.file(name)) as tmp:
-            table.write(tmp, format="fits")
+            fits.HDUList([fits.PrimaryHDU(), hdu]).writeto(tmp)
         return name
 
     def write_json(self, name: str, obj) -> str:

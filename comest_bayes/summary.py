@@ -47,7 +47,7 @@ from astropy.io import fits
 from . import ratios as R
 from .config import RunConfig
 
-__all__ = ["kind_summary", "maps_hdulist", "depth_summary", "SUMMARY_FORMAT"]
+__all__ = ["kind_summary", "maps_hdulist", "map_cube_header", "depth_summary", "SUMMARY_FORMAT"]
 
 SUMMARY_FORMAT = 1
 
@@ -126,8 +126,11 @@ def maps_hdulist(merged: dict, *, image_shape, pixel_scale: float, wcs, config: 
     HDUs: ``COMPLETENESS``, ``COMPLETENESS_N``, ``COMPLETENESS_LO``,
     ``COMPLETENESS_HI``, ``PURITY``, ``PURITY_N``; each is a cube
     (nmag, ny_bins, nx_bins) whose first two axes carry the celestial WCS of the
-    binned grid (rotation included) and whose plane ``i`` covers magnitudes
-    ``MAGLO{i}``-``MAGHI{i}`` (header keywords).
+    binned grid (rotation included) and whose third is the magnitude
+    (:func:`map_cube_header`): plane ``i`` covers magnitudes
+    ``MAGLO{i}``-``MAGHI{i}`` (header keywords).  A last table HDU,
+    ``MAG_EDGES``, lists the planes' edges (columns ``plane``, ``mag_lo``,
+    ``mag_hi``).
     """
     truth, det = merged["injected"], merged["detections"]
     bin_pix = R.map_bin_pixels(config.ratios.map_bin_arcmin, pixel_scale)
@@ -144,19 +147,80 @@ def maps_hdulist(merged: dict, *, image_shape, pixel_scale: float, wcs, config: 
                        np.asarray(det["matched"], bool), image_shape=image_shape, bin_pix=bin_pix,
                        mag_edges=mag_edges, excluded=_uncounted(det), confidence=conf,
                        interval=interval)
-    header = fits.Header()
-    if wcs is not None:
-        header.update(R.map_wcs(wcs, bin_pix, comp.shape).to_header(relax=True))
-    header["BINPIX"] = (float(bin_pix), "side of a map bin in image pixels")
-    for i, (lo, hi) in enumerate(zip(mag_edges[:-1], mag_edges[1:])):
-        header[f"MAGLO{i}"] = (float(lo), f"bright edge of plane {i} (mag)")
-        header[f"MAGHI{i}"] = (float(hi), f"faint edge of plane {i} (mag)")
+    header = map_cube_header(wcs, bin_pix, comp.shape, mag_edges)
     hdus = [fits.PrimaryHDU()]
     for name, arr in (("COMPLETENESS", comp.ratio), ("COMPLETENESS_N", comp.n), ("COMPLETENESS_LO", comp.lower),
                       ("COMPLETENESS_HI", comp.upper), ("PURITY", pur.ratio), ("PURITY_N", pur.n)):
         hdus.append(fits.ImageHDU(np.asarray(arr, dtype=np.float32 if arr.dtype.kind == "f" else np.int32),
                                   header=header, name=name))
+    edges = np.asarray(mag_edges, dtype=float)
+    planes = fits.BinTableHDU.from_columns([
+        fits.Column(name="plane", format="J", array=np.arange(edges.size - 1, dtype=np.int32)),
+        fits.Column(name="mag_lo", format="D", unit="mag", array=edges[:-1]),
+        fits.Column(name="mag_hi", format="D", unit="mag", array=edges[1:]),
+    ], name="MAG_EDGES")
+    planes.header["COMMENT"] = "Magnitude range of each plane (third axis, 0-based) of the map cubes."
+    hdus.append(planes)
     return fits.HDUList(hdus)
+
+
+def map_cube_header(wcs, bin_pix: float, grid_shape, mag_edges) -> fits.Header:
+    """Header of a map cube (nmag, ny_bins, nx_bins): a 3-D WCS and the plane edges as keywords.
+
+    Axes 1 and 2 are the celestial WCS of the binned grid (:func:`ratios.map_wcs`)
+    or, without an image WCS, the 0-based image pixel position of each bin's
+    centre (``CTYPE`` ``X``/``Y``, unit pixel).  Axis 3 is the magnitude:
+    ``CTYPE3 = 'MAG'`` with the centre of plane ``k`` at ``CRVAL3 + k CDELT3``
+    when the planes are equally wide; unequal planes cannot be a linear axis,
+    so it is then the plane index (``CTYPE3 = 'PLANE'``).  Either way
+    ``MAGLOk``/``MAGHIk`` give plane ``k``'s edges (and the ``MAG_EDGES`` table
+    of :func:`maps_hdulist`).  A WCS with SIP distortion stays 2-D (astropy
+    refuses SIP in more than two dimensions).
+    """
+    edges = np.asarray(mag_edges, dtype=float)
+    header = fits.Header()
+    if wcs is not None:
+        header.update(R.map_wcs(wcs, bin_pix, tuple(grid_shape)).to_header(relax=True))
+    else:
+        for axis, name in ((1, "X"), (2, "Y")):
+            header[f"CTYPE{axis}"] = (name, f"image {name.lower()} of the bin centre, 0-based")
+            header[f"CUNIT{axis}"] = ("pixel", "image pixels")
+            header[f"CRPIX{axis}"] = 1.0
+            header[f"CRVAL{axis}"] = (0.5 * float(bin_pix) - 0.5, "0-based image position of the first bin centre")
+            header[f"CDELT{axis}"] = (float(bin_pix), "bin side in image pixels")
+    if wcs is not None and getattr(wcs, "sip", None) is not None:
+        # astropy reads SIP distortions only in 2-D WCSs (WCS(header) would fail on every read)
+        header["COMMENT"] = "No magnitude WCS axis: SIP distortion is 2-D only; planes in MAGLOk/MAGHIk."
+    else:
+        _magnitude_axis(header, edges)
+    header["BINPIX"] = (float(bin_pix), "side of a map bin in image pixels")
+    for i, (lo, hi) in enumerate(zip(edges[:-1], edges[1:])):
+        header[f"MAGLO{i}"] = (float(lo), f"bright edge of plane {i} (mag)")
+        header[f"MAGHI{i}"] = (float(hi), f"faint edge of plane {i} (mag)")
+    return header
+
+
+def _magnitude_axis(header: fits.Header, edges: np.ndarray) -> None:
+    """Make ``header`` a 3-D WCS whose third axis is the magnitude (or the plane index), in place."""
+    if "WCSAXES" in header:
+        header["WCSAXES"] = 3
+    else:
+        header.insert(0, ("WCSAXES", 3, "Number of coordinate axes"))  # before every other WCS keyword
+    widths = np.diff(edges)
+    equal = widths.size >= 1 and np.allclose(widths, widths[0], rtol=0.0, atol=1e-9 * max(1.0, abs(widths[0])))
+    if equal:
+        header["CTYPE3"] = ("MAG", "magnitude at the centre of the plane")
+        header["CUNIT3"] = ("mag", "magnitudes")
+        header["CRPIX3"] = (1.0, "the first plane")
+        header["CRVAL3"] = (float(0.5 * (edges[0] + edges[1])), "centre of the first plane (mag)")
+        header["CDELT3"] = (float(widths[0]), "magnitude width of a plane")
+    else:
+        header["CTYPE3"] = ("PLANE", "plane index: unequal bins, see MAGLOk/MAGHIk")
+        header["CRPIX3"] = 1.0
+        header["CRVAL3"] = 0.0
+        header["CDELT3"] = 1.0
+    if "CD1_1" in header:  # a CD matrix overrides CDELT: the third axis needs its own element
+        header["CD3_3"] = header["CDELT3"]
 
 
 def _faint_crossing(h, level: float) -> float:

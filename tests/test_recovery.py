@@ -330,7 +330,7 @@ def test_maps_carry_a_wcs_matching_the_image_and_the_mask(masked_run):
     with fits.open(masked_run.out / entry["file"]) as hdul:
         names = [h.name for h in hdul[1:]]
         assert names == ["COMPLETENESS", "COMPLETENESS_N", "COMPLETENESS_LO", "COMPLETENESS_HI", "PURITY",
-                         "PURITY_N"]
+                         "PURITY_N", "MAG_EDGES"]
         hdr = hdul["COMPLETENESS"].header
         comp_n = hdul["COMPLETENESS_N"].data
         comp = hdul["COMPLETENESS"].data
