@@ -183,9 +183,14 @@ def run_info(run_dir) -> dict:
         "realizations": realizations,
         "kinds": kinds,
         "depth_5sigma": depth,
+        "adaptive": (summary or {}).get("adaptive"),
         "warnings": warnings_,
         "files": _files(root),
     }
+
+
+def _num(value) -> str:
+    return "n/a" if value is None else f"{value:.4f}"
 
 
 def _mag(value) -> str:
@@ -264,6 +269,14 @@ def format_info(info: dict) -> str:
             q = next((q for q in ("m50", "m80", "m90") if p.get(q)), None)
             lines.append(f"  purity model: {p['name']}; "
                          + (f"{q[1:]}% purity at {_q(p[q])}" if q else "no purity crossing in the range"))
+    ad = info.get("adaptive")
+    if ad:
+        lines.append(f"adaptive injection: target m50 half-width {ad.get('precision')} mag")
+        for kind, a in (ad.get("kinds") or {}).items():
+            last = (a.get("batches") or [{}])[-1]
+            lines.append(f"  {kind}: {'reached' if a.get('reached') else 'NOT reached'} in {len(a.get('batches') or [])} "
+                         f"batches, {a.get('realizations')} realizations, {last.get('injections')} injections "
+                         f"(half-width {_num(last.get('halfwidth'))})")
     if info.get("depth_5sigma") is not None:
         lines.append(f"5-sigma point-source depth: {info['depth_5sigma']:.2f} mag")
     if info["warnings"]:

@@ -122,3 +122,14 @@ def test_the_report_charts_precision_against_injections(adaptive_run):
     assert (out / "figures" / "adaptive_precision.png").is_file()
     ad = json.loads((out / "summary.json").read_text())["adaptive"]["kinds"]["point"]
     assert ("precision reached" if ad["reached"] else "precision NOT reached") in html
+
+
+def test_info_tells_how_the_adaptive_injection_ended(adaptive_run, capsys):
+    from comest_bayes.cli import main
+
+    out, _ = adaptive_run
+    assert main(["info", str(out)]) == 0
+    text = capsys.readouterr().out
+    ad = json.loads((out / "summary.json").read_text())["adaptive"]["kinds"]["point"]
+    assert "adaptive injection: target m50 half-width 0.02" in text
+    assert f"point: {'reached' if ad['reached'] else 'NOT reached'} in {len(ad['batches'])} batches" in text
