@@ -191,6 +191,14 @@ class SourceFreeConfig:
         Sources with AUTO signal-to-noise >= ``bnb_snr_min`` *and* isophotal
         area >= ``bnb_area_min`` pixels are kept (with their grown footprint)
         in the BnB image; all others are replaced as in the SFI.
+    warn_replaced, max_replaced : float
+        Fractions of the unmasked pixels of the image injected on
+        (``injection.on``) that may be replaced by sky draws before the run
+        warns (default 0.5) and before it is refused (default 0.9; 1 never
+        refuses): beyond them the completeness is measured on a fitted sky
+        rather than the observed noise (crowded fields).  The refusal comes
+        before anything is written and names the alternatives
+        (``injection.on = "observed"`` or ``"bnb"``).
     """
 
     dilate: float = 1.5
@@ -203,6 +211,8 @@ class SourceFreeConfig:
     bnb: bool = True
     bnb_snr_min: float = 50.0
     bnb_area_min: int = 100
+    warn_replaced: float = 0.5
+    max_replaced: float = 0.9
 
     def __post_init__(self):
         _check(self.dilate >= 0, "sourcefree.dilate", self.dilate, "a non-negative multiple of the FWHM, e.g. 1.5")
@@ -220,11 +230,17 @@ class SourceFreeConfig:
         _check(self.bnb_snr_min > 0, "sourcefree.bnb_snr_min", self.bnb_snr_min, "a positive SNR, e.g. 50")
         _check(self.bnb_area_min >= 1, "sourcefree.bnb_area_min", self.bnb_area_min,
                "an integer >= 1 pixel, e.g. 100")
+        _check(0 < self.warn_replaced <= 1, "sourcefree.warn_replaced", self.warn_replaced,
+               "a fraction in (0, 1], e.g. 0.5")
+        _check(self.warn_replaced <= self.max_replaced <= 1, "sourcefree.max_replaced", self.max_replaced,
+               f"a fraction from sourcefree.warn_replaced ({self.warn_replaced}) to 1 (never refuse), e.g. 0.9")
 
 
 KINDS = ("point", "buldisk", "sersic", "cosmos", "observed")
 PLACEMENTS = ("uniform", "grid", "halton")
 PSF_KINDS = ("moffat", "gaussian", "kolmogorov")
+#: Images injections may be drawn on: source-free, bright-and-big, the observed image itself.
+INJECTION_TARGETS = ("sfi", "bnb", "observed")
 
 
 @dataclass(frozen=True)
@@ -268,8 +284,12 @@ class InjectionConfig:
         fraction and Sersic index.
     cosmos_dir, cosmos_file : str
         GalSim RealGalaxyCatalog directory and catalog file name (``cosmos``).
-    on : {"sfi", "bnb"}
-        Inject onto the source-free or the bright-and-big image.
+    on : {"sfi", "bnb", "observed"}
+        Inject onto the source-free image (default), the bright-and-big image,
+        or the observed image itself (as Balrog does: injections then meet the
+        real sources, which the baseline detection marks as pre-existing; the
+        choice for crowded fields, where the source-free image would replace
+        most of the pixels).
     photon_noise : bool
         Add the sources' Poisson noise when the gain is known.
     write_images : bool
@@ -317,7 +337,7 @@ class InjectionConfig:
         _check(0.3 <= self.sersic_n_range[0] and self.sersic_n_range[1] <= 6.2, "injection.sersic_n_range",
                self.sersic_n_range, "indices within GalSim's supported 0.3-6.2")
         _check(self.hlr_range[0] > 0, "injection.hlr_range", self.hlr_range, "positive radii in arcsec")
-        _check(self.on in ("sfi", "bnb"), "injection.on", self.on, "'sfi' or 'bnb'")
+        _check(self.on in INJECTION_TARGETS, "injection.on", self.on, "'sfi', 'bnb' or 'observed'")
 
 
 @dataclass(frozen=True)

@@ -150,6 +150,9 @@ def run_info(run_dir) -> dict:
                 warnings_.append(f"{kind} {label}: the {m.get('sampler')} sampler did not converge")
         if not counts.get("usable"):
             warnings_.append(f"{kind}: no usable injection")
+    replacement = (recorded.get("sourcefree") or {}).get("replacement") or {}
+    for w in replacement.get("warnings") or []:
+        warnings_.append(f"source-free image: {w}")
     for failed in (summary or {}).get("failed_realizations") or []:
         warnings_.append(f"realization {failed} failed (rerun the same command to retry it)")
 

@@ -30,6 +30,9 @@ from .seeding import seed_sequence
 
 __all__ = ["ImageOptions", "ComputeOptions", "RunResult", "run_pipeline", "output_header"]
 
+#: The file injections are drawn on, by ``injection.on``.
+_BASE_FILES = {"sfi": "sfi.fits", "bnb": "bnb.fits", "observed": "observed.fits"}
+
 #: Narrowest target PSF (FWHM, arcsec) COSMOS galaxies may be drawn with: the HST/ACS F814W PSF is
 #: about 0.12" FWHM (Koekemoer et al. 2007) and must be deconvolved (GalSim RealGalaxy).
 COSMOS_MIN_FWHM_ARCSEC = 0.15
@@ -220,7 +223,7 @@ def _run_pipeline(options: ImageOptions, config: RunConfig, out_dir, *, log, com
                   opened: list) -> RunResult:
     from .preflight import SMALLEST_SEEING_PIX, check_injection_count, check_memory
     from .psf import injection_psf, measure_seeing
-    from .sourcefree import build_source_free
+    from .sourcefree import build_source_free, format_percent, judge_replacement
 
     # ---- validation: nothing is written before all of this passes -------------
     image = options.load()
@@ -240,6 +243,9 @@ def _run_pipeline(options: ImageOptions, config: RunConfig, out_dir, *, log, com
     if config.injection.psf not in ("moffat", "gaussian", "kolmogorov") and not Path(config.injection.psf).is_file():
         raise ConfigError(f"injection.psf={config.injection.psf!r} is neither moffat, gaussian, kolmogorov nor an "
                           f"existing FITS PSF image.")
+    if config.injection.on == "bnb" and not config.sourcefree.bnb:
+        raise ConfigError("injection.on='bnb' needs the bright-and-big image, which sourcefree.bnb=false (--no-bnb) "
+                          "does not make; set sourcefree.bnb=true or injection.on='sfi' or 'observed'.")
     if config.fit.model != "none":
         from .modelspec import load_spec
 
@@ -301,6 +307,21 @@ def _run_pipeline(options: ImageOptions, config: RunConfig, out_dir, *, log, com
                  nsims=config.adaptive.max_nsims if config.adaptive.enabled else config.injection.nsims,
                  workers=compute.workers if compute.executor != "serial" else 1)
 
+    # ---- the source-free image, judged before anything is written: where it would replace most
+    # of the image (a crowded field), the run is refused with the alternatives ------------------
+    sf = replacement = None
+    if not run.stage_done("sourcefree"):
+        if det is None:
+            det = _load_detection(run, image)
+        t0 = time.perf_counter()
+        sf = build_source_free(image.data, det, mask=image.mask, fwhm=float(fwhm["fwhm"]), config=config.sourcefree,
+                               seed=seed_sequence(config.seed, "sourcefree"))
+        sf_seconds = time.perf_counter() - t0
+        replacement = judge_replacement(sf.meta, on=config.injection.on, warn_fraction=config.sourcefree.warn_replaced,
+                                        max_fraction=config.sourcefree.max_replaced)
+        if replacement["refusal"]:
+            raise InputError(replacement["refusal"])
+
     run.open()
     opened.append(run)
     if run.lock_note:
@@ -331,22 +352,26 @@ def _run_pipeline(options: ImageOptions, config: RunConfig, out_dir, *, log, com
         log(f"warning: psf: {line}")
     run.update(image=image.facts(), psf=psf_choice)
 
-    # ---- source-free and bright-and-big images --------------------------------------
-    if run.stage_done("sourcefree"):
+    # ---- source-free and bright-and-big images (built above) ----------------------------
+    if sf is None:
         log("sourcefree: done earlier")
     else:
-        t0 = time.perf_counter()
-        sf = build_source_free(image.data, det, mask=image.mask, fwhm=image.fwhm, config=config.sourcefree,
-                               seed=seed_sequence(config.seed, "sourcefree"))
         files = [run.write_image("sfi.fits", sf.sfi, output_header(image, {"IMAGETYP": "source-free"},
                                                                    image_units=True))]
         if sf.bnb is not None:
             files.append(run.write_image("bnb.fits", sf.bnb, output_header(image, {"IMAGETYP": "bright-and-big"},
                                                                            image_units=True)))
-        dt = time.perf_counter() - t0
-        run.record_stage("sourcefree", files=files, seconds=dt, meta=sf.meta, kept_ids=sf.kept_ids)
-        log(f"sourcefree: replaced {100 * sf.removed.mean():.1f}% of the pixels"
-            + (f"; BnB keeps {len(sf.kept_ids)} sources" if sf.bnb is not None else "") + f" in {dt:.1f} s")
+        if config.injection.on == "observed":  # the base of the injections, read like the others
+            files.append(run.write_image("observed.fits", image.data.astype(np.float32),
+                                         output_header(image, {"IMAGETYP": "observed"}, image_units=True)))
+        run.record_stage("sourcefree", files=files, seconds=sf_seconds, meta=sf.meta, kept_ids=sf.kept_ids,
+                         replacement=replacement)
+        bnb_frac = sf.meta.get("bnb_fraction_replaced")
+        log(f"sourcefree: replaced {format_percent(sf.meta['fraction_replaced'])} of the unmasked pixels"
+            + (f"; BnB keeps {len(sf.kept_ids)} sources (replaces {format_percent(bnb_frac)})" if sf.bnb is not None
+               else "") + f" in {sf_seconds:.1f} s; injecting on {_BASE_FILES[config.injection.on]}")
+    for line in (run.stage_info("sourcefree").get("replacement") or {}).get("warnings", []):
+        log(f"warning: sourcefree: {line}")
     timings["sourcefree"] = run.stage_info("sourcefree").get("seconds")
 
     # ---- injection and recovery ------------------------------------------------------
@@ -407,7 +432,7 @@ def _injection_stages(run: RunDirectory, image: ImageData, det: DetectionResult,
 
     inj = config.injection
     psf_choice = run.state.get("psf") or {}
-    base_name = "bnb.fits" if inj.on == "bnb" else "sfi.fits"
+    base_name = _BASE_FILES[inj.on]
     if not run.file(base_name).exists():
         raise ConfigError(f"injection.on={inj.on!r} needs {base_name}, which this run did not make; "
                           f"set sourcefree.bnb=true or injection.on='sfi'.")
@@ -538,6 +563,7 @@ def _injection_stages(run: RunDirectory, image: ImageData, det: DetectionResult,
         "psf": psf_choice,
         "kinds": kinds,
         "failed_realizations": failures,
+        "sourcefree": run.stage_info("sourcefree").get("replacement"),
     }
     if adaptive_summary is not None:
         summary["adaptive"] = adaptive_summary

@@ -45,7 +45,8 @@ from scipy import ndimage
 from .config import SourceFreeConfig
 from .errors import InputError
 
-__all__ = ["SourceFreeResult", "build_source_free", "removal_radii", "dilated_footprint"]
+__all__ = ["SourceFreeResult", "build_source_free", "removal_radii", "dilated_footprint", "judge_replacement",
+           "format_percent", "BACKGROUND_SHIFT_WARN_SIGMA", "NOISE_RATIO_WARN"]
 
 #: Background mesh used for the re-estimate when neither the configuration nor
 #: the detection metadata gives one (SExtractor's BACK_SIZE default).
@@ -55,6 +56,15 @@ _DEFAULT_BACK_FILTERSIZE = 3
 _MAD_TO_SIGMA = 1.482602218505602
 #: Sky pixels used to recalibrate the noise level (a regular subsample beyond this).
 _CALIBRATION_PIXELS = 4_000_000
+#: SEP (as SExtractor) drops a background mesh holding less than this fraction of usable pixels and
+#: fills it from its neighbours; with every mesh dropped its background is 0 and its RMS 1.
+_MESH_MIN_GOOD = 0.5
+#: The re-estimate needs at least this fraction of its meshes kept, else the detection's maps are used.
+_MESHES_MIN_KEPT = 0.5
+#: The fill's background level departs from the detection's by more than this many noise sigma: warned.
+BACKGROUND_SHIFT_WARN_SIGMA = 0.3
+#: The fill's noise departs from the detection's by more than this fraction: warned.
+NOISE_RATIO_WARN = 0.2
 
 
 @dataclass
@@ -186,6 +196,18 @@ def _background_mesh(detection, config: SourceFreeConfig) -> tuple[int, int]:
     return int(size), int(filt)
 
 
+def _kept_mesh_fraction(usable: np.ndarray, size: int) -> float:
+    """Fraction of the ``size`` x ``size`` background meshes whose usable pixels SEP would accept."""
+    ny, nx = usable.shape
+    fractions = []
+    for y0 in range(0, ny, size):
+        rows = usable[y0:y0 + size]
+        counts = np.add.reduceat(rows.sum(axis=0), np.arange(0, nx, size))
+        widths = np.diff(np.append(np.arange(0, nx, size), nx))
+        fractions.append(counts / (widths * rows.shape[0]))
+    return float(np.mean(np.concatenate(fractions) >= _MESH_MIN_GOOD))
+
+
 def _rng(seed) -> np.random.Generator:
     if seed is None or isinstance(seed, bool):
         raise InputError(f"build_source_free needs a seed (an int, numpy SeedSequence or Generator); got {seed!r}. "
@@ -272,6 +294,11 @@ def build_source_free(data, detection, *, mask, fwhm, config: SourceFreeConfig =
     back_size, back_filt = _background_mesh(detection, config)
     nsky = int(sky.sum())
     reestimated = bool(config.reestimate_background and nsky >= max(back_size * back_size, 1000))
+    # SEP drops meshes with too few sky pixels and fills them from their neighbours; when most are
+    # dropped (a crowded field), the re-estimate rests on a few meshes or none (a background of 0)
+    meshes_kept = _kept_mesh_fraction(sky, back_size) if config.reestimate_background else None
+    if reestimated and meshes_kept < _MESHES_MIN_KEPT:
+        reestimated = False
     if reestimated:
         bkg = sep.Background(np.where(mask, 0.0, data).astype(np.float32), mask=~sky, bw=back_size, bh=back_size,
                              fw=back_filt, fh=back_filt)
@@ -324,6 +351,15 @@ def build_source_free(data, detection, *, mask, fwhm, config: SourceFreeConfig =
         bnb_frac = float(n_removed / max(int(good.sum()), 1))
 
     ngood = max(int(good.sum()), 1)
+    det_noise = np.asarray(detection.noise, dtype=np.float32)
+    det_back = np.asarray(detection.background, dtype=np.float32)
+    valid = good & np.isfinite(det_noise) & (det_noise > 0)
+    if valid.any():
+        noise_ref = float(np.median(det_noise[valid]))
+        shift_sigma = float(np.median((back[valid] - det_back[valid]) / det_noise[valid]))
+        noise_ratio = float(np.median(sigma[valid]) / noise_ref)
+    else:
+        noise_ref = shift_sigma = noise_ratio = None
     meta = {
         "fwhm": fwhm,
         "dilate": float(config.dilate),
@@ -338,6 +374,7 @@ def build_source_free(data, detection, *, mask, fwhm, config: SourceFreeConfig =
         "npix_replaced": n_removed,
         "fraction_replaced": float(n_removed / ngood),
         "background_reestimated": reestimated,
+        "background_meshes_kept": meshes_kept,
         "back_size": back_size,
         "back_filtersize": back_filt,
         "background_median": float(np.median(back[good])) if good.any() else None,
@@ -345,8 +382,108 @@ def build_source_free(data, detection, *, mask, fwhm, config: SourceFreeConfig =
         "noise_source": "weight map" if noise_mode == "weight" else "background rms",
         "noise_scale": scale,
         "noise_median": float(np.median(sigma[good])) if good.any() else None,
+        "detection_noise_median": noise_ref,
+        "background_shift_sigma": shift_sigma,
+        "noise_ratio": noise_ratio,
         "bnb": bool(config.bnb),
         "bnb_nkept": int(kept_ids.size),
         "bnb_fraction_replaced": bnb_frac,
     }
     return SourceFreeResult(sfi=sfi, bnb=bnb, removed=removed, kept_ids=kept_ids, meta=meta)
+
+
+def format_percent(fraction: float) -> str:
+    """A fraction as a percentage with one decimal, or as many as keep a fraction below 1 under 100%."""
+    value = 100.0 * float(fraction)
+    digits = 1
+    while digits < 4 and value < 100.0 and round(value, digits) >= 100.0:
+        digits += 1
+    return f"{value:.{digits}f}%"
+
+
+#: What each injection target is called in messages.
+_TARGETS = {"sfi": "source-free image", "bnb": "bright-and-big image", "observed": "observed image"}
+
+
+def judge_replacement(meta: dict, *, on: str = "sfi", warn_fraction: float = 0.5,
+                      max_fraction: float = 0.9) -> dict:
+    """How much of the image the injections land on is no longer the observed image, and whether to go on.
+
+    The completeness is the observed image's only as far as the injections see
+    its sky: where most of the unmasked pixels are replaced by draws of a fitted
+    sky (a crowded field, or segments grown over each other), the detector
+    works on a synthetic image whose background and noise are those of the fit.
+
+    Parameters
+    ----------
+    meta : dict
+        :attr:`SourceFreeResult.meta`.
+    on : {"sfi", "bnb", "observed"}
+        The image injected on (``injection.on``); the observed image has no
+        pixel replaced.
+    warn_fraction, max_fraction : float
+        Fractions of the unmasked pixels replaced above which the run is
+        warned about and refused (``sourcefree.warn_replaced`` and
+        ``sourcefree.max_replaced``).
+
+    Returns
+    -------
+    dict
+        Plain JSON: ``injected_on``, ``fraction_replaced`` (of the image
+        injected on), ``sfi_fraction_replaced``, ``bnb_fraction_replaced``
+        (None without a BnB image), ``warn_fraction``, ``max_fraction``, the
+        fill against the detection's maps (``background_shift_sigma``,
+        ``noise_ratio``), ``warnings`` (lines) and ``refusal`` (the error
+        message, or None when the run may go on).
+    """
+    sfi_frac = float(meta.get("fraction_replaced") or 0.0)
+    bnb_frac = meta.get("bnb_fraction_replaced")
+    frac = {"sfi": sfi_frac, "bnb": bnb_frac, "observed": 0.0}.get(on)
+    if frac is None:
+        frac = sfi_frac  # no BnB image was made; the pipeline refuses injection.on='bnb' then
+    shift, ratio = meta.get("background_shift_sigma"), meta.get("noise_ratio")
+    out = {"injected_on": on, "fraction_replaced": float(frac), "sfi_fraction_replaced": sfi_frac,
+           "bnb_fraction_replaced": None if bnb_frac is None else float(bnb_frac),
+           "warn_fraction": float(warn_fraction), "max_fraction": float(max_fraction),
+           "background_shift_sigma": shift, "noise_ratio": ratio, "warnings": [], "refusal": None}
+    if on == "observed":
+        return out
+    target = _TARGETS.get(on, on)
+    pct = format_percent(frac)
+    if frac > max_fraction:
+        alternatives = ["inject on the observed image itself, as Balrog does (--set injection.on=observed: the "
+                        "injections then meet the real sources, and blending with them counts in the completeness)"]
+        if on != "bnb" and bnb_frac is not None and bnb_frac <= max_fraction:
+            alternatives.append(f"inject on the bright-and-big image, which keeps the bright sources as observed and "
+                                f"replaces {format_percent(bnb_frac)} (--set injection.on=bnb)")
+        elif on != "bnb" and bnb_frac is None:
+            alternatives.append("inject on the bright-and-big image (--set sourcefree.bnb=true --set injection.on=bnb), "
+                                "which keeps the bright sources as observed")
+        alternatives.append(f"accept the {target} anyway with --set sourcefree.max_replaced=1")
+        out["refusal"] = (
+            f"the {target} replaces {pct} of the unmasked pixels by draws of a fitted sky (more than "
+            f"sourcefree.max_replaced = {100 * max_fraction:g}%): so little of the observed sky is left that the "
+            f"completeness would be measured on the fit's background and noise, not the image's. Alternatives: "
+            + "; or ".join(alternatives) + ". Nothing was written.")
+        return out
+    if frac > warn_fraction:
+        out["warnings"].append(
+            f"the {target} replaces {pct} of the unmasked pixels (more than sourcefree.warn_replaced = "
+            f"{100 * warn_fraction:g}%): the completeness is measured mostly on draws of a fitted sky rather than "
+            f"the observed noise; consider --set injection.on=observed (injecting on the observed image, as Balrog "
+            f"does)" + (" or --set injection.on=bnb" if on == "sfi" and bnb_frac is not None and bnb_frac < frac
+                        else ""))
+    if shift is not None and abs(shift) > BACKGROUND_SHIFT_WARN_SIGMA:
+        level = meta.get("background_median")
+        out["warnings"].append(
+            f"the sky drawn into the {target} lies {shift:+.2f} sigma from the detection's background map (more "
+            f"than {BACKGROUND_SHIFT_WARN_SIGMA} sigma; its median level is "
+            f"{'n/a' if level is None else f'{level:.4g}'}): the replaced "
+            f"patches are {'fainter' if shift < 0 else 'brighter'} than the sky the detector measured; check "
+            f"background.fits and sfi.fits")
+    if ratio is not None and abs(ratio - 1.0) > NOISE_RATIO_WARN:
+        out["warnings"].append(
+            f"the noise drawn into the {target} is {ratio:.2f} times the detection's noise map (more than "
+            f"{100 * NOISE_RATIO_WARN:g}% off): the injections see another noise than the image's; check rms.fits "
+            f"and sfi.fits")
+    return out

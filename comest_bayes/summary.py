@@ -29,6 +29,14 @@
           "m50_binned": m | null,          # where the binned completeness first falls below 0.5
           "maps": {"file": "maps/<kind>_maps.fits", "mag_edges": [...], "bin_arcmin": b}
         }
+      },
+      "sourcefree": {                      # comest_bayes.sourcefree.judge_replacement
+        "injected_on": "sfi" | "bnb" | "observed",
+        "fraction_replaced": f,            # of the unmasked pixels of the image injected on
+        "sfi_fraction_replaced": f, "bnb_fraction_replaced": f | null,
+        "warn_fraction": 0.5, "max_fraction": 0.9,
+        "background_shift_sigma": s, "noise_ratio": r,   # the fill against the detection's maps
+        "warnings": [...], "refusal": null
       }
     }
 

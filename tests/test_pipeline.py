@@ -79,15 +79,24 @@ def test_rerun_resumes_without_redoing_stages(small_tile, tmp_path):
     assert (out / "sfi.fits").stat().st_mtime_ns == sfi_before
 
 
+def _crash_writing_sfi(monkeypatch):
+    """The run dies as it writes sfi.fits (the source-free image is built and judged before anything is written)."""
+    from comest_bayes.rundir import RunDirectory
+
+    write_image = RunDirectory.write_image
+
+    def boom(self, name, *a, **k):
+        if name == "sfi.fits":
+            raise RuntimeError("simulated crash")
+        return write_image(self, name, *a, **k)
+
+    monkeypatch.setattr(RunDirectory, "write_image", boom)
+
+
 def test_crash_after_detection_resumes_from_the_next_stage(small_tile, tmp_path, monkeypatch):
     _, paths = small_tile
     out = tmp_path / "run"
-    import comest_bayes.sourcefree as sf
-
-    def boom(*a, **k):
-        raise RuntimeError("simulated crash")
-
-    monkeypatch.setattr(sf, "build_source_free", boom)
+    _crash_writing_sfi(monkeypatch)
     with pytest.raises(RuntimeError, match="simulated crash"):
         run_pipeline(_options(paths), load_config(), out, log=lambda s: None)
     assert (out / "detection.fits").exists() and not (out / "sfi.fits").exists()
@@ -204,12 +213,7 @@ def test_the_same_image_by_another_path_resumes_and_the_lock_is_released(synthet
 def test_a_failed_run_releases_its_lock(small_tile, tmp_path, monkeypatch):
     _, paths = small_tile
     out = tmp_path / "run"
-    import comest_bayes.sourcefree as sf
-
-    def boom(*a, **k):
-        raise RuntimeError("simulated crash")
-
-    monkeypatch.setattr(sf, "build_source_free", boom)
+    _crash_writing_sfi(monkeypatch)
     with pytest.raises(RuntimeError, match="simulated crash"):
         run_pipeline(_options(paths), load_config(), out, log=lambda s: None)
     assert (out / "run.json").exists() and not (out / "run.lock").exists()

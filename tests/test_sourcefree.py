@@ -16,16 +16,19 @@ Two kinds of synthetic image with a known sky are used:
 from __future__ import annotations
 
 import json
+from dataclasses import replace
 
 import galsim
 import numpy as np
 import pytest
 from scipy import ndimage
 
+from conftest import render_point_sources
+
 from comest_bayes.config import SourceFreeConfig
 from comest_bayes.detection import detect_array
 from comest_bayes.errors import InputError
-from comest_bayes.sourcefree import build_source_free, dilated_footprint, removal_radii
+from comest_bayes.sourcefree import build_source_free, dilated_footprint, judge_replacement, removal_radii
 
 ZP = 30.0
 
@@ -319,3 +322,83 @@ def test_meta_is_plain_json_and_validation(clean):
         build_source_free(data[:100], det, mask=None, fwhm=3.5, config=SourceFreeConfig(), seed=1)
     with pytest.raises(InputError, match="mask has shape"):
         build_source_free(data, det, mask=np.zeros((2, 2), bool), fwhm=3.5, config=SourceFreeConfig(), seed=1)
+
+
+# ------------------------------------------------------------------------------------------------
+# crowded fields: how much is replaced, and whether the fill still looks like the detection's sky
+# ------------------------------------------------------------------------------------------------
+
+
+def crowded_field(n: int = 256, nstars: int = 600, mags=(16.0, 24.0), seed: int = 1):
+    """Gaussian stars (FWHM 3 px) at random positions, dN/dm ~ 10^(0.3 m), on a flat sky 100 with noise 10.
+
+    600 stars of 16-24 mag on 256^2 (half the density of 20,000 stars on 1024^2) leave a seventh of
+    the pixels outside the grown segments, and no 64-px background mesh with half its pixels free.
+    """
+    rng = np.random.default_rng(seed)
+    a = 0.3
+    lo, hi = 10 ** (a * mags[0]), 10 ** (a * mags[1])
+    m = np.log10(lo + rng.uniform(size=nstars) * (hi - lo)) / a
+    x, y = rng.uniform(0, n, nstars), rng.uniform(0, n, nstars)
+    model = render_point_sources((n, n), x, y, 10 ** (-0.4 * (m - ZP)), fwhm=3.0)
+    return (model + 100.0 + rng.normal(0.0, 10.0, (n, n))).astype(np.float32)
+
+
+def test_too_few_sky_meshes_keep_the_detection_background():
+    # With every 64-px mesh less than half sky, SEP's re-estimate is 0 with an RMS of 1: the fill sat
+    # 10 sigma below the sky, its noise rescaled to hide it. The detection's maps are used instead.
+    data = crowded_field()
+    det = detect_array(data, zeropoint=ZP)
+    res = build_source_free(data, det, mask=None, fwhm=3.0, seed=1)
+    meta = res.meta
+    assert 0.8 < meta["fraction_replaced"] < 0.9  # observed 0.852
+    assert meta["background_meshes_kept"] < 0.5 and meta["background_reestimated"] is False
+    fill = res.sfi[res.removed]
+    # the fill is the detection's sky (about 101: faint stars lift it 0.1 sigma), not 0
+    assert np.median(det.background) == pytest.approx(np.median(fill), abs=1.0)
+    assert 95.0 < np.median(fill) < 105.0
+    assert meta["background_shift_sigma"] == pytest.approx(0.0, abs=1e-6)
+
+
+def test_the_fill_is_checked_against_the_detection_maps(clean):
+    data, sky, sigma, det = clean
+    good = build_source_free(data, det, mask=None, fwhm=3.5, seed=1).meta
+    verdict = judge_replacement(good)
+    assert abs(good["background_shift_sigma"]) < 0.1 and abs(good["noise_ratio"] - 1) < 0.05
+    assert verdict["warnings"] == [] and verdict["refusal"] is None
+    # a detection whose background map sits 2 sigma high and whose noise map reads 1.5x the noise:
+    # the fill, measured on the kept sky, departs from both, and each departure is named
+    biased = replace(det, background=det.background + 2.0 * sigma, rms=det.rms * 1.5, noise=det.noise * 1.5)
+    meta = build_source_free(data, biased, mask=None, fwhm=3.5, seed=1).meta
+    assert meta["background_shift_sigma"] == pytest.approx(-2.0 / 1.5, abs=0.05)  # in the (inflated) map's sigma
+    assert meta["noise_ratio"] == pytest.approx(1 / 1.5, abs=0.03)
+    lines = judge_replacement(meta)["warnings"]
+    assert len(lines) == 2
+    assert "-1.3" in lines[0] and "fainter than the sky the detector measured" in lines[0]
+    assert f"{meta['noise_ratio']:.2f} times the detection's noise map" in lines[1]
+
+
+def test_judge_replacement_thresholds_and_alternatives():
+    meta = {"fraction_replaced": 0.95, "bnb_fraction_replaced": 0.40, "background_shift_sigma": 0.0,
+            "noise_ratio": 1.0}
+    sfi = judge_replacement(meta, on="sfi")
+    assert sfi["fraction_replaced"] == 0.95 and sfi["warnings"] == []
+    assert "replaces 95.0% of the unmasked pixels" in sfi["refusal"]
+    assert "sourcefree.max_replaced = 90%" in sfi["refusal"]
+    assert "--set injection.on=observed" in sfi["refusal"]
+    assert "replaces 40.0% (--set injection.on=bnb)" in sfi["refusal"]
+    assert "--set sourcefree.max_replaced=1" in sfi["refusal"]
+    # the BnB image replaces less: warned (above 0.5 would be), here quiet at 0.40
+    bnb = judge_replacement(meta, on="bnb")
+    assert bnb["fraction_replaced"] == 0.40 and bnb["refusal"] is None and bnb["warnings"] == []
+    # the observed image replaces nothing
+    obs = judge_replacement(meta, on="observed")
+    assert obs["fraction_replaced"] == 0.0 and obs["refusal"] is None and obs["sfi_fraction_replaced"] == 0.95
+    # between the thresholds: a warning naming the alternatives; a limit of 1 never refuses
+    mid = judge_replacement({**meta, "fraction_replaced": 0.7}, on="sfi")
+    assert mid["refusal"] is None and len(mid["warnings"]) == 1
+    assert "replaces 70.0%" in mid["warnings"][0] and "injection.on=observed" in mid["warnings"][0]
+    assert judge_replacement(meta, on="sfi", max_fraction=1.0)["refusal"] is None
+    # a BnB image that replaces as much is not offered as the way out
+    both = judge_replacement({**meta, "bnb_fraction_replaced": 0.93}, on="sfi")
+    assert "injection.on=bnb" not in both["refusal"] and "injection.on=observed" in both["refusal"]
