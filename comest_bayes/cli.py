@@ -83,6 +83,27 @@ def _add_output_options(group) -> None:
     group.add_argument("--debug", action="store_true", help="show tracebacks of errors")
 
 
+def _write_line(line: str, file) -> None:
+    """Print one line; while a progress bar is on screen, above it (a plain print would cut through it)."""
+    from tqdm.auto import tqdm
+
+    if getattr(tqdm, "_instances", None):
+        tqdm.write(line, file=file)
+        file.flush()
+    else:
+        print(line, file=file, flush=True)
+
+
+def _show_warning(message, category, filename, lineno, file=None, line=None) -> None:
+    """``warnings.showwarning`` for a terminal: one ``warning:`` line that keeps the progress bars whole."""
+    _write_line(f"warning: {message}", file or sys.stderr)
+
+
+def _progress_enabled(args) -> bool:
+    """Progress bars only for a person watching: not with --quiet, not into a file or pipe."""
+    return not getattr(args, "quiet", False) and sys.stderr.isatty()
+
+
 def _center(text: str) -> tuple[float, float]:
     try:
         x, y = (float(v) for v in text.split(","))
@@ -220,7 +241,7 @@ def _compute_from_args(args):
         raise ComestError(f"--ncpu {workers} must be at least 1.")
     executor = "dask" if args.scheduler else args.executor
     return ComputeOptions(executor=executor, workers=workers, scheduler=args.scheduler,
-                          progress=not args.quiet and sys.stderr.isatty())
+                          progress=_progress_enabled(args))
 
 
 def _cmd_fit(args, log) -> int:
@@ -322,9 +343,16 @@ def _demo_locked(args, config, out: Path, compute, log) -> int:
         if inputs.exists() and any(inputs.glob("demo_seed*.done")):
             raise ComestError(f"{str(inputs)!r} holds a demo tile made with other --seed/--size; "
                               f"choose another --out or remove it.")
+        from tqdm.auto import tqdm
+
         t0 = time.perf_counter()
         log(f"demo: synthesizing a {args.size}x{args.size} tile (seed {config.seed}) ...")
-        tile = make_demo_tile(seed=config.seed, size=args.size)
+        with tqdm(desc="demo tile", unit="source", disable=not _progress_enabled(args), leave=False) as bar:
+            def drawn(done: int, total: int) -> None:
+                bar.total = total
+                bar.update(done - bar.n)
+
+            tile = make_demo_tile(seed=config.seed, size=args.size, progress=drawn)
         inputs.mkdir(parents=True, exist_ok=True)
         write_demo_tile(tile, inputs)
         marker.write_text("complete\n")
@@ -389,10 +417,13 @@ def main(argv=None) -> int:
 
     def log(line: str) -> None:
         if not quiet:
-            print(line, flush=True)
+            _write_line(line, sys.stdout)
 
     # Warnings (unconverged samplers, prior-dominated fits) as one readable line each.
     warnings.formatwarning = lambda message, category, *rest, **kw: f"warning: {message}\n"
+    shown = warnings.showwarning
+    if _progress_enabled(args):  # on a terminal with progress bars: above them, not through them
+        warnings.showwarning = _show_warning
     handler = {"run": _cmd_run, "demo": _cmd_demo, "report": _cmd_report, "lf": _cmd_lf, "fit": _cmd_fit,
                "info": _cmd_info}[args.command]
     try:
@@ -426,6 +457,8 @@ def main(argv=None) -> int:
     except KeyboardInterrupt:
         print("interrupted: rerun the same command to resume where it stopped.", file=sys.stderr)
         return 130
+    finally:
+        warnings.showwarning = shown
 
 
 def _one_line(exc: BaseException) -> str:

@@ -700,15 +700,22 @@ def _star_profile(spec: _Spec, flux: float, threshold: float, cache: dict) -> ga
     return cache[folding].withFlux(flux)
 
 
-def _draw_sources(spec: _Spec, truth: Table) -> tuple[np.ndarray, np.ndarray]:
-    """Noise-free source image (ADU, float64, shape (size, size)) and the flux each source put in it."""
+def _draw_sources(spec: _Spec, truth: Table, progress=None) -> tuple[np.ndarray, np.ndarray]:
+    """Noise-free source image (ADU, float64, shape (size, size)) and the flux each source put in it.
+
+    ``progress(done, total)``, when given, is called about 200 times as the sources are drawn.
+    """
     src = np.zeros((spec.size, spec.size), dtype=np.float64)
     drawn = np.zeros(len(truth))
     canvas = galsim.Image(src, xmin=1, ymin=1, scale=1.0)  # a view: drawing writes into ``src``
     threshold = STAMP_SB_FRACTION * spec.sigma0
     psf_gal = spec.psf(True)
     star_cache: dict = {}
+    total = len(truth)
+    every = max(1, total // 200)
     for k, row in enumerate(truth):
+        if progress is not None and k % every == 0:
+            progress(k, total)
         x, y = float(row["x"]), float(row["y"])
         half = _stamp_half(spec, row, threshold)
         ix, iy = int(round(x)) + 1, int(round(y)) + 1  # GalSim pixels are 1-based
@@ -723,6 +730,8 @@ def _draw_sources(spec: _Spec, truth: Table) -> tuple[np.ndarray, np.ndarray]:
         before = stamp.array.sum()
         prof.drawImage(image=stamp, add_to_image=True, center=galsim.PositionD(x + 1.0, y + 1.0), method="auto")
         drawn[k] = stamp.array.sum() - before
+    if progress is not None:
+        progress(total, total)
     return src, drawn
 
 
@@ -845,7 +854,7 @@ def make_demo_tile(seed: int = 0, *, size: int = 3000, pixel_scale: float = 0.26
                    star_density: float = 1.0, mag_bright: float = 17.0, faint_margin: float = 2.0,
                    ra_center: float = 150.1, dec_center: float = 2.2, rotation_deg: float = 10.0,
                    keep_model: bool = False, galaxy_counts: tuple | None = None,
-                   star_counts: tuple | None = None) -> DemoTile:
+                   star_counts: tuple | None = None, progress=None) -> DemoTile:
     """Synthesize the demo tile.
 
     Every parameter is described in the module docstring; the defaults make
@@ -856,6 +865,10 @@ def make_demo_tile(seed: int = 0, *, size: int = 3000, pixel_scale: float = 0.26
     ``keep_model=True`` also returns the noise-free model (sky + sources,
     before saturation and the gap) as ``DemoTile.model``, e.g. to check a
     source-free image against the truth.
+
+    ``progress``, a callable ``progress(done, total)``, is told how many of
+    the sources are drawn (about 200 times, the last with ``done == total``);
+    drawing them is most of the time a large tile takes.
 
     Returns
     -------
@@ -876,7 +889,7 @@ def make_demo_tile(seed: int = 0, *, size: int = 3000, pixel_scale: float = 0.26
     truth, info = _truth_table(spec, seed)
     shape = (spec.size, spec.size)
 
-    src, drawn = _draw_sources(spec, truth)
+    src, drawn = _draw_sources(spec, truth, progress)
     truth.add_column(Column(drawn, name="flux_in_tile",
                             description="flux drawn into the tile, ADU (>= 99.7% of flux unless cut by the edge)"),
                      index=truth.colnames.index("flux") + 1)

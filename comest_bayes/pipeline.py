@@ -761,8 +761,17 @@ def _fit_stages(run: RunDirectory, image: ImageData, det: DetectionResult, confi
     if tasks:
         log(f"fit: {len(tasks)} model fits ({', '.join(t['kind'] + ' ' + t['quantity'] for t in tasks)}) "
             f"on {compute.describe()}")
+    serial = compute.executor == "serial" or (compute.executor == "processes" and compute.workers <= 1)
+    progress = _FitProgress(tasks, log, describe=lambda t: _describe_fit(t, kinds[t["kind"]], config),
+                            workers=1 if serial else compute.workers, known_order=compute.executor != "dask")
 
     def on_result(task, result):
+        try:
+            record(task, result)
+        finally:
+            progress.finished(task)  # after the finished fit's line: then the next one's start
+
+    def record(task, result):
         post, entry = result
         kind, quantity = task["kind"], task["quantity"]
         cpu["fit"] = cpu.get("fit", 0.0) + float(entry.get("cpu_seconds", 0.0))
@@ -797,6 +806,101 @@ def _fit_stages(run: RunDirectory, image: ImageData, det: DetectionResult, confi
             + ("n/a" if med is None else f"{med:.2f} (+{m50['hi68'] - med:.2f}/-{med - m50['lo68']:.2f})")
             + f", ESS {float(np.min(entry['diagnostics'].get('ess') or [0])):.0f}, {entry['seconds']:.1f} s")
 
-    run_tasks(fit_task, tasks, on_result=on_result, executor=compute.executor, workers=compute.workers,
-              scheduler=compute.scheduler, progress=compute.progress, desc="fits")
+    progress.start()
+    try:
+        run_tasks(fit_task, tasks, on_result=on_result, executor=compute.executor, workers=compute.workers,
+                  scheduler=compute.scheduler, progress=compute.progress, desc="fits")
+    finally:
+        progress.stop()
     return len(tasks)
+
+
+#: Seconds between the lines that say which fits are still running (a fit can take minutes).
+FIT_HEARTBEAT_SECONDS = 60.0
+
+
+def _describe_fit(task: dict, counts_entry: dict, config: RunConfig) -> str:
+    """What one fit does, in words: the model or the selection among models, the sampler, the data."""
+    from .modelspec import load_spec, resolve_candidates
+
+    sampler = {"auto": "importance sampling (emcee if that fails)", "importance": "importance sampling",
+               "emcee": "emcee"}.get(config.fit.sampler, config.fit.sampler)
+    spec = load_spec(task["requested"])
+    if spec.is_selection:
+        names = [c.name for c in resolve_candidates(spec)]
+        what = f"selecting among {', '.join(names)} (MAP + Laplace each), then {sampler} of the chosen one"
+    else:
+        what = f"{spec.name} (MAP + Laplace), then {sampler}"
+    if task["quantity"] == "completeness":
+        return f"{what}; {(counts_entry.get('counts') or {}).get('usable', 0)} injections"
+    return f"{what}; matched against false detections in measured magnitude"
+
+
+class _FitProgress:
+    """Says which fits start and, every :data:`FIT_HEARTBEAT_SECONDS`, which are still running.
+
+    The executors start tasks in the order given as workers free up (``known_order``; a Dask
+    scheduler decides its own order, so then only the number still running is known).  Lines go
+    through ``log``, which keeps them above any progress bar.
+    """
+
+    def __init__(self, tasks: list, log, *, describe, workers: int, known_order: bool = True):
+        import threading
+
+        self._pending = list(tasks)
+        self._running: dict[int, tuple[dict, float]] = {}
+        self._log, self._describe = log, describe
+        self._slots = max(1, int(workers)) if known_order else len(tasks)
+        self._known = known_order
+        self._lock = threading.Lock()
+        self._stop = threading.Event()
+        self._thread = None
+
+    @staticmethod
+    def _name(task: dict) -> str:
+        return f"{task['kind']} {task['quantity']}"
+
+    def _start_next(self) -> None:
+        while self._pending and len(self._running) < self._slots:
+            task = self._pending.pop(0)
+            self._running[id(task)] = (task, time.monotonic())
+            if self._known:
+                self._log(f"fit: {self._name(task)}: started: {self._describe(task)}")
+
+    def start(self) -> None:
+        import threading
+
+        if not self._pending:
+            return
+        with self._lock:
+            self._start_next()
+        self._thread = threading.Thread(target=self._beat, name="comest-bayes-fit-progress", daemon=True)
+        self._thread.start()
+
+    def finished(self, task: dict) -> None:
+        with self._lock:
+            self._running.pop(id(task), None)
+            self._start_next()
+
+    def _beat(self) -> None:
+        while not self._stop.wait(FIT_HEARTBEAT_SECONDS):
+            now = time.monotonic()
+            with self._lock:
+                running = list(self._running.values())
+            if not running:
+                continue
+            if self._known:
+                self._log("fit: still running: " + ", ".join(f"{self._name(t)} ({_duration(now - t0)})"
+                                                              for t, t0 in running))
+            else:
+                self._log(f"fit: {len(running)} fits still running ({_duration(now - running[0][1])})")
+
+    def stop(self) -> None:
+        self._stop.set()
+        if self._thread is not None:
+            self._thread.join(timeout=5.0)
+
+
+def _duration(seconds: float) -> str:
+    seconds = int(round(seconds))
+    return f"{seconds // 60} min {seconds % 60:02d} s" if seconds >= 60 else f"{seconds} s"

@@ -1,0 +1,98 @@
+"""What a run shows while it works: log lines above the progress bars, the demo tile's progress, the fits."""
+
+import io
+import time
+
+import numpy as np
+import pytest
+from tqdm.auto import tqdm
+
+import comest_bayes.pipeline as P
+from comest_bayes.cli import _write_line, main
+from comest_bayes.demo import make_demo_tile
+
+
+def _last_line_drawn(text: str, line: str) -> str:
+    """What a terminal shows on the row where ``line`` was written: the text after the row's last ``\\r``."""
+    row = next(r for r in text.split("\n") if line in r)
+    return row.split("\r")[-1]
+
+
+def test_log_lines_go_above_an_active_progress_bar():
+    line = "inject: 8 realizations in 13.7 s"
+    screen = io.StringIO()
+    with tqdm(total=8, desc="realizations", file=screen, ncols=80, mininterval=0, disable=False) as bar:
+        bar.update(3)
+        _write_line(line, screen)
+        bar.update(1)
+    # the bar is cleared first, so the row holds the line alone, and the bar is drawn again below it
+    assert _last_line_drawn(screen.getvalue(), line) == line
+    assert "4/8" in screen.getvalue().split(line)[1]
+    # the control: a plain print lands after the bar's text on the same row (the issue's "6.02s/task]f")
+    screen = io.StringIO()
+    with tqdm(total=8, desc="realizations", file=screen, ncols=80, mininterval=0, disable=False) as bar:
+        bar.update(3)
+        print(line, file=screen)
+    assert _last_line_drawn(screen.getvalue(), line) != line
+    # without a bar it is an ordinary line
+    screen = io.StringIO()
+    _write_line(line, screen)
+    assert screen.getvalue() == line + "\n"
+
+
+def test_demo_tile_synthesis_reports_its_progress():
+    calls = []
+    tile = make_demo_tile(seed=1, size=256, progress=lambda done, total: calls.append((done, total)))
+    n = len(tile.truth)
+    assert calls[0] == (0, n) and calls[-1] == (n, n)
+    done = [c[0] for c in calls]
+    assert done == sorted(done) and all(c[1] == n for c in calls)
+    assert len(calls) <= 202  # about 200 updates, however many sources
+    np.testing.assert_array_equal(tile.image, make_demo_tile(seed=1, size=256).image)  # progress changes nothing
+
+
+def _task(kind, quantity="completeness"):
+    return {"kind": kind, "quantity": quantity}
+
+
+def test_fit_progress_names_each_fit_as_it_starts_and_those_still_running(monkeypatch):
+    monkeypatch.setattr(P, "FIT_HEARTBEAT_SECONDS", 0.05)
+    lines = []
+    tasks = [_task("point"), _task("point", "purity"), _task("buldisk")]
+    progress = P._FitProgress(tasks, lines.append, describe=lambda t: f"fitting {t['kind']}", workers=2)
+    progress.start()
+    try:
+        # two workers: the first two fits start at once, the third when one of them ends
+        assert lines == ["fit: point completeness: started: fitting point", "fit: point purity: started: fitting point"]
+        deadline = time.monotonic() + 5.0
+        while not any(s.startswith("fit: still running:") for s in lines) and time.monotonic() < deadline:
+            time.sleep(0.01)
+        beat = next(s for s in lines if s.startswith("fit: still running:"))
+        assert beat.startswith("fit: still running: point completeness (") and "point purity (" in beat
+        progress.finished(tasks[1])
+        assert "fit: buldisk completeness: started: fitting buldisk" in lines
+    finally:
+        progress.stop()
+    n = len(lines)
+    time.sleep(0.2)
+    assert len(lines) == n  # stopped: no more lines
+    # where the scheduler decides the order (Dask) only the number still running is known
+    lines.clear()
+    progress = P._FitProgress(tasks, lines.append, describe=str, workers=2, known_order=False)
+    progress.start()
+    try:
+        deadline = time.monotonic() + 5.0
+        while not lines and time.monotonic() < deadline:
+            time.sleep(0.01)
+    finally:
+        progress.stop()
+    assert lines and lines[0].startswith("fit: 3 fits still running (")
+
+
+def test_quiet_demo_prints_nothing(tmp_path, capsys):
+    assert main(["demo", "--out", str(tmp_path / "demo"), "--size", "256", "--nsims", "1", "--kinds", "point",
+                 "--model", "logistic", "--set", "fit.purity_model=none", "--no-report", "--executor", "serial",
+                 "--quiet"]) == 0
+    captured = capsys.readouterr()
+    assert captured.out == "" and captured.err == ""
+    assert (tmp_path / "demo" / "summary.json").is_file()
