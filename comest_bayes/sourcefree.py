@@ -457,8 +457,8 @@ def judge_replacement(meta: dict, *, on: str = "sfi", warn_fraction: float = 0.5
             alternatives.append(f"inject on the bright-and-big image, which keeps the bright sources as observed and "
                                 f"replaces {format_percent(bnb_frac)} (--set injection.on=bnb)")
         elif on != "bnb" and bnb_frac is None:
-            alternatives.append("inject on the bright-and-big image (--set sourcefree.bnb=true --set injection.on=bnb), "
-                                "which keeps the bright sources as observed")
+            alternatives.append("inject on the bright-and-big image (--set sourcefree.bnb=true "
+                                "--set injection.on=bnb), which keeps the bright sources as observed")
         alternatives.append(f"accept the {target} anyway with --set sourcefree.max_replaced=1")
         out["refusal"] = (
             f"the {target} replaces {pct} of the unmasked pixels by draws of a fitted sky (more than "

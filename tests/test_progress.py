@@ -4,7 +4,6 @@ import io
 import time
 
 import numpy as np
-import pytest
 from tqdm.auto import tqdm
 
 import comest_bayes.pipeline as P
