@@ -752,7 +752,9 @@ def _fit_stages(run: RunDirectory, image: ImageData, det: DetectionResult, confi
         for quantity, requested in jobs:
             stage = f"fit_{quantity}_{kind}"
             key = "model" if quantity == "completeness" else "purity_model"
-            if run.stage_done(stage):
+            # a fit is kept only for the outcomes it was fitted to: a realization that failed before and
+            # has run since changes the merged catalogs, and the fit is redone
+            if run.stage_done(stage) and run.stage_info(stage).get("counts") == kinds[kind].get("counts"):
                 kinds[kind][key] = run.stage_info(stage)["entry"]
                 continue
             tasks.append({"run_dir": str(run.path), "kind": kind, "quantity": quantity, "requested": requested,
@@ -792,7 +794,8 @@ def _fit_stages(run: RunDirectory, image: ImageData, det: DetectionResult, confi
                     hdul.writeto(tmp)
                 entry["m50_map_file"] = name
                 files.append(name)
-        run.record_stage(f"fit_{quantity}_{kind}", files=files, seconds=entry.get("seconds", 0.0), entry=entry)
+        run.record_stage(f"fit_{quantity}_{kind}", files=files, seconds=entry.get("seconds", 0.0), entry=entry,
+                         counts=kinds[kind].get("counts"))
         kinds[kind][key] = entry
         if post is None:
             log(f"fit: {kind} {quantity}: skipped ({entry['skipped']})")

@@ -182,3 +182,28 @@ def test_kill_during_the_fits_then_resume_redoes_only_unfinished_fits(case, tile
     assert any(s.startswith("fit: buldisk completeness: started: logistic (MAP + Laplace), then importance "
                             "sampling") for s in printed)
     _assert_same_results(out, reference)
+
+
+def test_a_realization_that_failed_and_then_ran_gets_its_kind_refitted(tile, reference, tmp_path, capsys,
+                                                                      monkeypatch):
+    import comest_bayes.recovery as recovery
+
+    run_realization = recovery.run_realization
+
+    def flaky(task):
+        if task.kind == "buldisk" and task.index == 1:
+            return recovery.RealizationResult(task.kind, task.index, None, None, error="simulated failure\n")
+        return run_realization(task)
+
+    out = tmp_path / "run"
+    monkeypatch.setattr(recovery, "run_realization", flaky)
+    assert main(_args(tile, out)) == 0
+    first = json.loads((out / "summary.json").read_text())
+    assert first["failed_realizations"] == ["buldisk #1"]
+    assert first["kinds"]["buldisk"]["counts"]["realizations"] == 1
+    monkeypatch.undo()
+    capsys.readouterr()
+    assert main(_args(tile, out)) == 0  # the failed realization runs now, and the buldisk fits see it
+    printed = capsys.readouterr().out.splitlines()
+    assert "fit: 2 model fits (buldisk completeness, buldisk purity) on 1 process" in printed
+    _assert_same_results(out, reference)
