@@ -425,8 +425,8 @@ def _injection_stages(run: RunDirectory, image: ImageData, det: DetectionResult,
     from . import ratios as R
     from .detection import detect_with_backend
     from .executors import run_tasks
-    from .recovery import RealizationTask, SimContext, merge_realizations, realization_file, run_realization, \
-        write_realization
+    from .progress import realization_with_warnings
+    from .recovery import RealizationTask, SimContext, merge_realizations, realization_file, write_realization
     from .rundir import atomic_path
     from .summary import SUMMARY_FORMAT, depth_summary, kind_binned, kind_summary, maps_hdulist
 
@@ -489,7 +489,14 @@ def _injection_stages(run: RunDirectory, image: ImageData, det: DetectionResult,
         log(f"inject: {len(todo)} realizations to run ({ndone} done earlier) of kinds {', '.join(inj.kinds)} "
             f"on {compute.describe()}")
 
-        def on_result(task, result):
+        said = set()
+
+        def on_result(task, packed):
+            result, caught = packed
+            for text in caught:  # the workers' warnings, once each, above the progress bar
+                if text not in said:
+                    said.add(text)
+                    log(f"warning: realization {result.kind} #{result.index}: {text}")
             if result.error is not None:
                 failures.append(f"{result.kind} #{result.index}")
                 log(f"warning: realization {result.kind} #{result.index} failed; it will be retried on the "
@@ -498,8 +505,9 @@ def _injection_stages(run: RunDirectory, image: ImageData, det: DetectionResult,
             cpu["inject"] += float(result.seconds.get("cpu", 0.0))
             write_realization(result, sims)
 
-        run_tasks(run_realization, todo, on_result=on_result, executor=compute.executor, workers=compute.workers,
-                  scheduler=compute.scheduler, progress=compute.progress, desc="realizations")
+        run_tasks(realization_with_warnings, todo, on_result=on_result, executor=compute.executor,
+                  workers=compute.workers, scheduler=compute.scheduler, progress=compute.progress,
+                  desc="realizations")
         timings["inject"] = round(time.perf_counter() - t0, 3)
         timings["inject_cpu"] = round(cpu["inject"], 3)
         log(f"inject: {len(todo) - len(failures)} realizations in {timings['inject']:.1f} s"
@@ -737,6 +745,7 @@ def _fit_stages(run: RunDirectory, image: ImageData, det: DetectionResult, confi
     cpu = {} if cpu is None else cpu
     from .executors import run_tasks
     from .fitting import fit_task
+    from .progress import FitProgress, describe_fit
     from .rundir import atomic_path
 
     if config.fit.model == "none":
@@ -764,8 +773,8 @@ def _fit_stages(run: RunDirectory, image: ImageData, det: DetectionResult, confi
         log(f"fit: {len(tasks)} model fits ({', '.join(t['kind'] + ' ' + t['quantity'] for t in tasks)}) "
             f"on {compute.describe()}")
     serial = compute.executor == "serial" or (compute.executor == "processes" and compute.workers <= 1)
-    progress = _FitProgress(tasks, log, describe=lambda t: _describe_fit(t, kinds[t["kind"]], config),
-                            workers=1 if serial else compute.workers, known_order=compute.executor != "dask")
+    progress = FitProgress(tasks, log, describe=lambda t: describe_fit(t, kinds[t["kind"]], config),
+                           workers=1 if serial else compute.workers, known_order=compute.executor != "dask")
 
     def on_result(task, result):
         try:
@@ -816,94 +825,3 @@ def _fit_stages(run: RunDirectory, image: ImageData, det: DetectionResult, confi
     finally:
         progress.stop()
     return len(tasks)
-
-
-#: Seconds between the lines that say which fits are still running (a fit can take minutes).
-FIT_HEARTBEAT_SECONDS = 60.0
-
-
-def _describe_fit(task: dict, counts_entry: dict, config: RunConfig) -> str:
-    """What one fit does, in words: the model or the selection among models, the sampler, the data."""
-    from .modelspec import load_spec, resolve_candidates
-
-    sampler = {"auto": "importance sampling (emcee if that fails)", "importance": "importance sampling",
-               "emcee": "emcee"}.get(config.fit.sampler, config.fit.sampler)
-    spec = load_spec(task["requested"])
-    if spec.is_selection:
-        names = [c.name for c in resolve_candidates(spec)]
-        what = f"selecting among {', '.join(names)} (MAP + Laplace each), then {sampler} of the chosen one"
-    else:
-        what = f"{spec.name} (MAP + Laplace), then {sampler}"
-    if task["quantity"] == "completeness":
-        return f"{what}; {(counts_entry.get('counts') or {}).get('usable', 0)} injections"
-    return f"{what}; matched against false detections in measured magnitude"
-
-
-class _FitProgress:
-    """Says which fits start and, every :data:`FIT_HEARTBEAT_SECONDS`, which are still running.
-
-    The executors start tasks in the order given as workers free up (``known_order``; a Dask
-    scheduler decides its own order, so then only the number still running is known).  Lines go
-    through ``log``, which keeps them above any progress bar.
-    """
-
-    def __init__(self, tasks: list, log, *, describe, workers: int, known_order: bool = True):
-        import threading
-
-        self._pending = list(tasks)
-        self._running: dict[int, tuple[dict, float]] = {}
-        self._log, self._describe = log, describe
-        self._slots = max(1, int(workers)) if known_order else len(tasks)
-        self._known = known_order
-        self._lock = threading.Lock()
-        self._stop = threading.Event()
-        self._thread = None
-
-    @staticmethod
-    def _name(task: dict) -> str:
-        return f"{task['kind']} {task['quantity']}"
-
-    def _start_next(self) -> None:
-        while self._pending and len(self._running) < self._slots:
-            task = self._pending.pop(0)
-            self._running[id(task)] = (task, time.monotonic())
-            if self._known:
-                self._log(f"fit: {self._name(task)}: started: {self._describe(task)}")
-
-    def start(self) -> None:
-        import threading
-
-        if not self._pending:
-            return
-        with self._lock:
-            self._start_next()
-        self._thread = threading.Thread(target=self._beat, name="comest-bayes-fit-progress", daemon=True)
-        self._thread.start()
-
-    def finished(self, task: dict) -> None:
-        with self._lock:
-            self._running.pop(id(task), None)
-            self._start_next()
-
-    def _beat(self) -> None:
-        while not self._stop.wait(FIT_HEARTBEAT_SECONDS):
-            now = time.monotonic()
-            with self._lock:
-                running = list(self._running.values())
-            if not running:
-                continue
-            if self._known:
-                self._log("fit: still running: " + ", ".join(f"{self._name(t)} ({_duration(now - t0)})"
-                                                              for t, t0 in running))
-            else:
-                self._log(f"fit: {len(running)} fits still running ({_duration(now - running[0][1])})")
-
-    def stop(self) -> None:
-        self._stop.set()
-        if self._thread is not None:
-            self._thread.join(timeout=5.0)
-
-
-def _duration(seconds: float) -> str:
-    seconds = int(round(seconds))
-    return f"{seconds // 60} min {seconds % 60:02d} s" if seconds >= 60 else f"{seconds} s"

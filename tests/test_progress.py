@@ -6,7 +6,7 @@ import time
 import numpy as np
 from tqdm.auto import tqdm
 
-import comest_bayes.pipeline as P
+import comest_bayes.progress as P
 from comest_bayes.cli import _write_line, main
 from comest_bayes.demo import make_demo_tile
 
@@ -55,10 +55,10 @@ def _task(kind, quantity="completeness"):
 
 
 def test_fit_progress_names_each_fit_as_it_starts_and_those_still_running(monkeypatch):
-    monkeypatch.setattr(P, "FIT_HEARTBEAT_SECONDS", 0.05)
+    monkeypatch.setattr(P, "HEARTBEAT_SECONDS", 0.05)
     lines = []
     tasks = [_task("point"), _task("point", "purity"), _task("buldisk")]
-    progress = P._FitProgress(tasks, lines.append, describe=lambda t: f"fitting {t['kind']}", workers=2)
+    progress = P.FitProgress(tasks, lines.append, describe=lambda t: f"fitting {t['kind']}", workers=2)
     progress.start()
     try:
         # two workers: the first two fits start at once, the third when one of them ends
@@ -77,7 +77,7 @@ def test_fit_progress_names_each_fit_as_it_starts_and_those_still_running(monkey
     assert len(lines) == n  # stopped: no more lines
     # where the scheduler decides the order (Dask) only the number still running is known
     lines.clear()
-    progress = P._FitProgress(tasks, lines.append, describe=str, workers=2, known_order=False)
+    progress = P.FitProgress(tasks, lines.append, describe=str, workers=2, known_order=False)
     progress.start()
     try:
         deadline = time.monotonic() + 5.0
@@ -95,3 +95,21 @@ def test_quiet_demo_prints_nothing(tmp_path, capsys):
     captured = capsys.readouterr()
     assert captured.out == "" and captured.err == ""
     assert (tmp_path / "demo" / "summary.json").is_file()
+
+
+def test_a_realizations_warnings_come_back_to_the_main_process_once_each(monkeypatch):
+    import warnings
+
+    import comest_bayes.recovery as recovery
+
+    def noisy(task):
+        for n in (49, 49, 52):
+            warnings.warn(f"only {n} of 132 injections fit", UserWarning)
+        return ("result of", task)
+
+    monkeypatch.setattr(recovery, "run_realization", noisy)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # nothing escapes to the worker's stderr
+        result, caught = P.realization_with_warnings("task 3")
+    assert result == ("result of", "task 3")
+    assert caught == ["only 49 of 132 injections fit", "only 52 of 132 injections fit"]
