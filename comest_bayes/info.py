@@ -114,7 +114,7 @@ def run_info(run_dir) -> dict:
     config = fingerprint.get("config") or {}
     injection = config.get("injection") or {}
     image = (summary or {}).get("image") or state.get("image") or {}
-    options = (fingerprint.get("input") or {}).get("options") or {}
+    options = state.get("input_options") or (fingerprint.get("input") or {}).get("options") or {}
     holder = lock_holder(root) if (root / LOCK_FILE).exists() else None
 
     stages = {}

@@ -99,6 +99,11 @@ class ImageOptions:
                 return role, str(path)
         return "image", str(self.path)
 
+    def located(self) -> dict:
+        """The options with the input files' resolved absolute paths (where this run found them)."""
+        return {k: (str(Path(v).resolve()) if k in ("path", "weight", "mask") and v is not None else v)
+                for k, v in asdict(self).items()}
+
     def fingerprint(self) -> dict:
         """Options plus the checksum of every input file.
 
@@ -350,7 +355,8 @@ def _run_pipeline(options: ImageOptions, config: RunConfig, out_dir, *, log, com
         + (f"; beta: {psf_choice['beta_source']}" if psf_choice.get("beta_source") else ""))
     for line in psf_choice["warnings"]:
         log(f"warning: psf: {line}")
-    run.update(image=image.facts(), psf=psf_choice)
+    # where the inputs are now (the fingerprint names them by content): the report reopens them from here
+    run.update(image=image.facts(), psf=psf_choice, input_options=options.located())
 
     # ---- source-free and bright-and-big images (built above) ----------------------------
     if sf is None:

@@ -171,7 +171,7 @@ def test_figure3_markers_are_the_realization_outcomes(report_run):
     det = fits.getdata(out / "detection.fits", 1)
     assert len(d.detections.x) == len(det)
     # the observed cutout is the input image there, masked pixels blank
-    image = fits.getdata(run.state["fingerprint"]["input"]["options"]["path"])
+    image = fits.getdata(run.state["input_options"]["path"])  # where the run found its input
     good = np.isfinite(d.observed.data)
     np.testing.assert_allclose(d.observed.data[good], image[150:350, 150:350][good])
 

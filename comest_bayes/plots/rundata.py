@@ -353,7 +353,7 @@ def figure3_data(run: RunData, *, kind: str | None = None, index: int | None = N
     notes = []
     observed = None
     try:
-        opts = ImageOptions(**run.state["fingerprint"]["input"]["options"])
+        opts = ImageOptions(**(run.state.get("input_options") or run.state["fingerprint"]["input"]["options"]))
         image = opts.load()
         observed = cut(image.data, region, image.mask)
     except Exception as exc:  # the input image moved or changed; the other panels still stand
