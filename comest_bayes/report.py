@@ -456,7 +456,7 @@ def _maps_section(r: _Report) -> None:
             r.figure(f"maps_{kind}", f"Binned completeness and purity maps of {kind}",
                      "Completeness (top) and purity (bottom) in spatial cells over the image, one column per "
                      "magnitude range (true magnitude for completeness, measured for purity); colour scale 0-1, "
-                     "grey cells hold no injections (or no detections).",
+                     "grey cells hold no injections (completeness) or no detections (purity).",
                      lambda comp=comp, pur=pur, kind=kind: ratio_maps_figure(kind, comp, pur, bin_arcmin=bin_arcmin))
         model = run.kind(kind).get("model") or {}
         m50 = RD.m50_map(run, kind)

@@ -86,7 +86,8 @@ def ratio_maps_figure(kind: str, completeness: list, purity: list | None = None,
         fig.colorbar(axes[r, 0].images[0], ax=list(axes[r, :len(planes)]), label=quantity, shrink=0.9)
     title = f"{kind}: binned maps"
     if bin_arcmin:
-        title += f" ({bin_arcmin:g}' cells; grey: no injections)"
+        title += (f" ({bin_arcmin:g}' cells; grey: no injections" + ("; in the purity row, no detections" if purity
+                                                                     else "") + ")")
     fig.suptitle(title)
     return fig
 
