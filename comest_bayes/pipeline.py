@@ -543,7 +543,8 @@ def _injection_stages(run: RunDirectory, image: ImageData, det: DetectionResult,
         comp = kind_binned(merged, edges, config)["completeness"]
         m50 = R.magnitude_at(comp, 0.5)
         map_edges = (np.asarray(config.ratios.map_mag_edges, float) if config.ratios.map_mag_edges
-                     else R.default_map_mag_edges(m50 if np.isfinite(m50) else float(np.mean(mag_range))))
+                     else R.transition_map_mag_edges(comp) if np.isfinite(m50)
+                     else R.default_map_mag_edges(float(np.mean(mag_range))))
         maps_name = f"maps/{kind}_maps.fits"
         hdul = maps_hdulist(merged, image_shape=image.shape, pixel_scale=image.pixel_scale, wcs=image.wcs,
                             config=config, mag_edges=map_edges)

@@ -90,6 +90,7 @@ __all__ = [
     "first_crossing",
     "magnitude_at",
     "default_map_mag_edges",
+    "transition_map_mag_edges",
     "map_bin_pixels",
     "ratio_maps",
     "completeness_map",
@@ -570,6 +571,28 @@ def default_map_mag_edges(m50: float, width: float = 1.0) -> np.ndarray:
     if not (np.isfinite(width) and width > 0):
         raise InputError(f"width = {width!r} must be a positive number of magnitudes.")
     return m50 + width * np.array([-1.5, -0.5, 0.5, 1.5])
+
+
+def transition_map_mag_edges(comp: BinnedRatio, width: float = 1.0) -> np.ndarray:
+    """Three magnitude bins centred where the binned completeness crosses 0.9, 0.5 and 0.1.
+
+    The automatic map slices: one bin where most sources are found, one at the
+    transition, one where most are lost, so that every panel of the maps shows
+    where the completeness changes (fixed 1-mag slices around m50 put two
+    panels on the plateau and the floor when the transition is narrow).  The
+    bins meet half-way between the crossings; the outer ones are as wide as
+    their inner halves.  Falls back to :func:`default_map_mag_edges` (around
+    m50, ``width``) when the curve does not cross all three levels in order.
+
+    Returns
+    -------
+    ndarray, shape (4,)
+    """
+    m90, m50, m10 = (magnitude_at(comp, level) for level in (0.9, 0.5, 0.1))
+    if np.all(np.isfinite([m90, m50, m10])) and m90 < m50 < m10:
+        lo, hi = 0.5 * (m90 + m50), 0.5 * (m50 + m10)
+        return np.array([m90 - (lo - m90), lo, hi, m10 + (m10 - hi)])
+    return default_map_mag_edges(m50, width)
 
 
 # --------------------------------------------------------------------------

@@ -16,6 +16,7 @@ from comest_bayes.ratios import (
     completeness,
     completeness_map,
     default_map_mag_edges,
+    transition_map_mag_edges,
     detection_rate,
     magnitude_at,
     magnitude_edges,
@@ -257,3 +258,24 @@ def test_map_wcs_errors():
         map_wcs(_rotated_wcs(0.0), 0.0)
     with pytest.raises(InputError, match="2 axes"):
         map_wcs(WCS(naxis=3), 10.0)
+
+
+def test_map_slices_sit_where_the_completeness_changes():
+    # a logistic with m50 = 24, w = 0.2 sampled exactly: crossings at 24 -/+ w ln 9 (0.44 mag)
+    edges = np.arange(21.0, 27.01, 0.05)
+    centers = 0.5 * (edges[:-1] + edges[1:])
+    f = 1.0 / (1.0 + np.exp((centers - 24.0) / 0.2))
+    n = np.full(centers.size, 10000)
+    comp = completeness(np.repeat(centers, n), np.concatenate([np.arange(k) < round(p * k) for p, k in zip(f, n)]),
+                        edges)
+    e = transition_map_mag_edges(comp)
+    d = 0.2 * np.log(9.0)
+    np.testing.assert_allclose(e, [24 - 1.5 * d, 24 - 0.5 * d, 24 + 0.5 * d, 24 + 1.5 * d], atol=0.03)
+    # each slice's mean completeness is high, about one half, and low
+    mid = 0.5 * (e[:-1] + e[1:])
+    fm = 1.0 / (1.0 + np.exp((mid - 24.0) / 0.2))
+    assert fm[0] > 0.85 and abs(fm[1] - 0.5) < 0.05 and fm[2] < 0.15
+    # a curve that never falls to 0.1: the fixed slices around m50
+    comp2 = completeness(np.repeat(centers, n), np.concatenate([np.arange(k) < round((0.3 + 0.6 * p) * k)
+                                                                 for p, k in zip(f, n)]), edges)
+    np.testing.assert_allclose(transition_map_mag_edges(comp2), default_map_mag_edges(magnitude_at(comp2, 0.5)))
