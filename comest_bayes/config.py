@@ -375,7 +375,7 @@ class RatiosConfig:
         Spatial bin size of the maps, arcmin.
     map_mag_edges : tuple of float
         Magnitude bin edges of the maps; empty for automatic (three bins
-        around the 50% completeness magnitude).
+        centred where the binned completeness crosses 0.9, 0.5 and 0.1).
     confidence : float
         Probability content of the binomial intervals (0.6827 = 1 sigma).
     interval : {"wilson", "jeffreys", "flat"}
