@@ -646,6 +646,8 @@ def _adaptive_injection(run: RunDirectory, ctx, config: RunConfig, compute: "Com
     from .design import MagnitudeDesign, design_from_draws, uniform_design
     from .executors import run_tasks
     from .recovery import RealizationTask, merge_realizations, realization_file, run_realization, write_realization
+    from astropy.table import vstack
+
     from .rundir import atomic_path
     from .seeding import int_seed_for
 
@@ -658,7 +660,7 @@ def _adaptive_injection(run: RunDirectory, ctx, config: RunConfig, compute: "Com
     state = {}
     for kind in config.injection.kinds:
         state[kind] = {"n": 0, "design": uniform_design(lo, hi), "batches": [], "done": False, "reached": False,
-                       "reason": "", "fit": package_fitter(image_shape=noise.shape, noise=noise, mask=mask, lo=lo,
+                       "reason": "", "outcomes": [], "fit": package_fitter(image_shape=noise.shape, noise=noise, mask=mask, lo=lo,
                                                            hi=hi, seed=int_seed_for(config.seed, "adaptive", kind),
                                                            model=model, kind=kind, mag_bin=config.ratios.mag_bin)}
     log(f"adaptive: batches until the 68% half-width of m50 is <= {ad.precision} mag per kind (pilot "
@@ -706,7 +708,9 @@ def _adaptive_injection(run: RunDirectory, ctx, config: RunConfig, compute: "Com
         for kind, (start, end) in span.items():
             st = state[kind]
             st["n"] = end
-            outcomes = merge_realizations(sims, kind, range(end))["outcomes"]
+            # only this batch's realizations are read; the outcome table is the stack of every batch's
+            st["outcomes"].append(merge_realizations(sims, kind, range(start, end))["outcomes"])
+            outcomes = vstack(st["outcomes"], metadata_conflicts="silent")
             c0 = time.process_time()
             view, (post, entry) = st["fit"](outcomes, k)
             cpu["design_fit"] = cpu.get("design_fit", 0.0) + time.process_time() - c0

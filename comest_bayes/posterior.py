@@ -31,6 +31,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import math
 import warnings
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -120,18 +121,30 @@ class Footprint:
                     depth[ok] = -2.5 * np.log10(sig[ok] / float(sigma_ref))
                 yield jj + j0, ii, depth
 
-        npix, dmin, dmax = 0, np.inf, -np.inf
-        for _, ii, depth in chunks():
-            if ii.size:
-                npix += ii.size
-                dmin, dmax = min(dmin, float(depth.min())), max(dmax, float(depth.max()))
+        # the depth range from the noise extremes (depth falls as the noise rises); pixels without a valid
+        # noise sit at depth 0, as in the outcome table
+        good_px = ~mask
+        npix = int(np.count_nonzero(good_px))
         if npix == 0:
             raise InputError("the mask leaves no unmasked pixel to average over.")
+        dmin = dmax = 0.0
+        if use_noise:
+            with np.errstate(invalid="ignore"):
+                valid = good_px & np.isfinite(noise) & (noise > 0)
+            nvalid = int(np.count_nonzero(valid))
+            if nvalid:
+                smin, smax = float(np.min(noise[valid])), float(np.max(noise[valid]))
+                dmin = -2.5 * math.log10(smax / float(sigma_ref))
+                dmax = -2.5 * math.log10(smin / float(sigma_ref))
+                if nvalid < npix:
+                    dmin, dmax = min(dmin, 0.0), max(dmax, 0.0)
         # integer keys over a dense range, so the cells come from bincount (linear time, no sort)
-        size = (int(np.floor((dmax - dmin) / ddepth)) + 1) * nuv * nuv
+        nd = int(np.floor((dmax - dmin) / ddepth)) + 1
+        size = nd * nuv * nuv
         n, sd, su, sv = (np.zeros(size) for _ in range(4))
         for jj, ii, depth in chunks():
-            key = np.floor((depth - dmin) / ddepth).astype(np.int64)
+            # clipped: the extremes computed above may differ from the per-pixel values by a rounding error
+            key = np.clip(np.floor((depth - dmin) / ddepth).astype(np.int64), 0, nd - 1)
             if nuv > 1:
                 key = (key * nuv + np.minimum(ii * nuv // nx, nuv - 1)) * nuv + np.minimum(jj * nuv // ny, nuv - 1)
             n += np.bincount(key, minlength=size)
