@@ -28,7 +28,8 @@ from .design import DEFAULT_UNIFORM_SHARE, TARGETS, MagnitudeDesign, design_from
 from .errors import InputError
 from .seeding import rng_for
 
-__all__ = ["AdaptiveSettings", "BatchRecord", "SequentialResult", "run_sequential", "PosteriorView"]
+__all__ = ["AdaptiveSettings", "BatchRecord", "SequentialResult", "run_sequential", "PosteriorView",
+           "after_batch", "check_recorded", "package_fitter"]
 
 
 @dataclass(frozen=True)
@@ -142,6 +143,30 @@ class SequentialResult:
                 "batches": [b.to_dict() for b in self.batches]}
 
 
+def check_recorded(recorded: MagnitudeDesign, design: MagnitudeDesign, k: int) -> None:
+    """Refuse a resume whose recorded design of batch ``k`` is not the one this run builds."""
+    if not np.allclose(recorded.prob, design.prob, rtol=1e-9, atol=1e-12):
+        raise InputError(f"batch {k} was recorded with another design than this run builds: the earlier run used "
+                         "other settings, code or outcomes; start a new output folder.")
+
+
+def after_batch(view: PosteriorView, lo: float, hi: float, *, precision: float, at_cap: bool, spent: str,
+                target: str, uniform_share: float):
+    """What follows a batch: ``(reached, reason, next design)``.
+
+    ``reached`` when the m50 half-width is at most ``precision``; otherwise
+    stopped (with the reason) ``at_cap``, or the design of the next batch.
+    ``spent`` words the effort so far for the reason (e.g. ``"3375 injections"``).
+    """
+    half = view.m50_halfwidth
+    if half <= precision:
+        return True, f"m50 half-width {half:.4f} <= {precision} after {spent}", None
+    if at_cap:
+        return False, f"stopped at the cap of {spent} with m50 half-width {half:.4f} > {precision}", None
+    return False, "", design_from_draws(view.grid, view.curves, lo, hi, target=target, m50=view.m50,
+                                        uniform_share=uniform_share)
+
+
 def _stack(tables: list) -> Table:
     return tables[0] if len(tables) == 1 else vstack(tables, metadata_conflicts="silent")
 
@@ -184,9 +209,7 @@ def run_sequential(simulate, fit, lo: float, hi: float, settings: AdaptiveSettin
         t0 = time.perf_counter()
         if k < len(done):
             table, recorded = done[k]
-            if not np.allclose(recorded.prob, design.prob, rtol=1e-9, atol=1e-12):
-                raise InputError(f"batch {k} was recorded with another design than this run builds: the earlier "
-                                 "run used other settings or outcomes; start a new output folder.")
+            check_recorded(recorded, design, k)
         else:
             mags = design.sample(n, rng_for(seed, "design", k))
             table = simulate(mags, k)
@@ -203,16 +226,12 @@ def run_sequential(simulate, fit, lo: float, hi: float, settings: AdaptiveSettin
             f"{100 * design.fraction_within(rec.m50 - 0.6, rec.m50 + 0.6) if math.isfinite(rec.m50) else 0:.0f}% "
             f"within 0.6 mag of m50): {total} in all, m50 {rec.m50:.3f} +- {rec.halfwidth:.4f} "
             f"(target {settings.precision})")
-        if rec.halfwidth <= settings.precision:
-            reached, reason = True, f"m50 half-width {rec.halfwidth:.4f} <= {settings.precision} after {total} injections"
-            break
-        if total >= settings.max_injections:
-            reason = (f"stopped at the cap of {settings.max_injections} injections with m50 half-width "
-                      f"{rec.halfwidth:.4f} > {settings.precision}")
+        reached, reason, design = after_batch(view, lo, hi, precision=settings.precision,
+                                              at_cap=total >= settings.max_injections, spent=f"{total} injections",
+                                              target=settings.target, uniform_share=settings.uniform_share)
+        if design is None:
             break
         k += 1
-        design = design_from_draws(view.grid, view.curves, lo, hi, target=settings.target, m50=view.m50,
-                                   uniform_share=settings.uniform_share)
     table = _stack(tables)
     return SequentialResult(table=table, batches=batches, reached=reached, reason=reason, posterior=post)
 

@@ -642,8 +642,8 @@ def _adaptive_injection(run: RunDirectory, ctx, config: RunConfig, compute: "Com
     import json
     import math
 
-    from .adaptive import package_fitter
-    from .design import MagnitudeDesign, design_from_draws, uniform_design
+    from .adaptive import after_batch, check_recorded, package_fitter
+    from .design import MagnitudeDesign, uniform_design
     from .executors import run_tasks
     from .recovery import RealizationTask, merge_realizations, realization_file, run_realization, write_realization
     from astropy.table import vstack
@@ -677,10 +677,7 @@ def _adaptive_injection(run: RunDirectory, ctx, config: RunConfig, compute: "Com
             design = st["design"]
             path = designs / f"{kind}_batch{k}.json"
             if path.exists():
-                recorded = MagnitudeDesign.from_dict(json.loads(path.read_text()))
-                if not np.allclose(recorded.prob, design.prob, rtol=1e-9, atol=1e-12):
-                    raise ConfigError(f"{path} records another design than this run computes for batch {k}: the run "
-                                      "directory was made with other settings or code; use a new --out.")
+                check_recorded(MagnitudeDesign.from_dict(json.loads(path.read_text())), design, k)
             else:
                 with atomic_path(path) as tmp:
                     tmp.write_text(json.dumps(design.to_dict()))
@@ -727,15 +724,14 @@ def _adaptive_injection(run: RunDirectory, ctx, config: RunConfig, compute: "Com
                 f"{rec['injections']} injections, m50 "
                 + ("undefined" if rec["m50"] is None else f"{rec['m50']:.3f} +- {half:.4f}")
                 + f" (target {ad.precision}; {entry['name']})")
-            if half <= ad.precision:
-                st.update(done=True, reached=True, reason=f"m50 half-width {half:.4f} <= {ad.precision} after "
-                                                          f"{end} realizations ({rec['injections']} injections)")
-            elif end >= ad.max_nsims:
-                st.update(done=True, reason=f"stopped at the cap of {ad.max_nsims} realizations with m50 half-width "
-                                            f"{half:.4f} > {ad.precision}; raise --max-nsims or relax --precision")
+            reached, reason, nxt = after_batch(view, lo, hi, precision=ad.precision, at_cap=end >= ad.max_nsims,
+                                               spent=f"{end} realizations, {rec['injections']} injections",
+                                               target=ad.target, uniform_share=ad.uniform_share)
+            if nxt is None:
+                st.update(done=True, reached=reached,
+                          reason=reason if reached else reason + "; raise --max-nsims or relax --precision")
             else:
-                st["design"] = design_from_draws(view.grid, view.curves, lo, hi, target=ad.target, m50=view.m50,
-                                                 uniform_share=ad.uniform_share)
+                st["design"] = nxt
             if st["done"]:
                 log(f"adaptive: {kind}: {'precision reached' if st['reached'] else 'precision NOT reached'}: "
                     f"{st['reason']}")
