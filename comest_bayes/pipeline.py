@@ -642,12 +642,13 @@ def _adaptive_injection(run: RunDirectory, ctx, config: RunConfig, compute: "Com
     import json
     import math
 
+    from astropy.table import vstack
+
     from .adaptive import after_batch, check_recorded, package_fitter
     from .design import MagnitudeDesign, uniform_design
     from .executors import run_tasks
-    from .recovery import RealizationTask, merge_realizations, realization_file, run_realization, write_realization
-    from astropy.table import vstack
-
+    from .progress import realization_with_warnings
+    from .recovery import RealizationTask, merge_realizations, realization_file, write_realization
     from .rundir import atomic_path
     from .seeding import int_seed_for
 
@@ -666,6 +667,7 @@ def _adaptive_injection(run: RunDirectory, ctx, config: RunConfig, compute: "Com
     log(f"adaptive: batches until the 68% half-width of m50 is <= {ad.precision} mag per kind (pilot "
         f"{ad.pilot_nsims} uniform realizations, then +{ad.growth:.0%} per batch, {ad.uniform_share:.0%} uniform, "
         f"at most {ad.max_nsims} realizations)")
+    said = set()  # each distinct worker warning is logged once per run, as in the uniform injection
     k = 0
     while not all(st["done"] for st in state.values()):
         tasks, span = [], {}
@@ -688,7 +690,12 @@ def _adaptive_injection(run: RunDirectory, ctx, config: RunConfig, compute: "Com
                     tasks.append(RealizationTask(ctx, kind, i, design=None if k == 0 else design.to_dict()))
         failed = []
 
-        def on_result(task, result):
+        def on_result(task, packed):
+            result, caught = packed
+            for text in caught:  # the workers' warnings, once each, above the progress bar
+                if text not in said:
+                    said.add(text)
+                    log(f"warning: realization {result.kind} #{result.index} (adaptive batch {k}): {text}")
             if result.error is not None:
                 failed.append(f"{result.kind} #{result.index}: {result.error.strip().splitlines()[-1]}")
                 return
@@ -696,8 +703,9 @@ def _adaptive_injection(run: RunDirectory, ctx, config: RunConfig, compute: "Com
             write_realization(result, sims)
 
         if tasks:
-            run_tasks(run_realization, tasks, on_result=on_result, executor=compute.executor, workers=compute.workers,
-                      scheduler=compute.scheduler, progress=compute.progress, desc=f"batch {k}")
+            run_tasks(realization_with_warnings, tasks, on_result=on_result, executor=compute.executor,
+                      workers=compute.workers, scheduler=compute.scheduler, progress=compute.progress,
+                      desc=f"batch {k}")
         if failed:
             raise ComestError(f"adaptive batch {k}: {len(failed)} realization(s) failed ({failed[0]}); the design of "
                               "the next batch needs them all. Rerun the same command to retry them (finished "

@@ -133,3 +133,27 @@ def test_info_tells_how_the_adaptive_injection_ended(adaptive_run, capsys):
     ad = json.loads((out / "summary.json").read_text())["adaptive"]["kinds"]["point"]
     assert "adaptive injection: target m50 half-width 0.02" in text
     assert f"point: {'reached' if ad['reached'] else 'NOT reached'} in {len(ad['batches'])} batches" in text
+
+
+def test_the_workers_warnings_reach_the_log_once_each(tile, tmp_path, monkeypatch):
+    import warnings
+
+    import comest_bayes.recovery as recovery
+
+    real = recovery._run_realization
+
+    def noisy(task):
+        # the pilot's realizations warn alike (logged once); the designed batch warns of its own realization
+        warnings.warn("stamp of injection 7 clipped at the image edge", UserWarning)
+        if task.design is not None:
+            warnings.warn(f"designed realization {task.index} drew no magnitude above the range", UserWarning)
+        return real(task)
+
+    monkeypatch.setattr(recovery, "_run_realization", noisy)
+    lines = []
+    run_pipeline(_options(tile), _config("adaptive.precision=0.001", "adaptive.max_nsims=3", "adaptive.pilot_nsims=2"),
+                 tmp_path / "run", log=lines.append, compute=ComputeOptions(executor="serial", progress=False))
+    said = [s for s in lines if s.startswith("warning: realization point")]
+    assert said == ["warning: realization point #0 (adaptive batch 0): stamp of injection 7 clipped at the image edge",
+                    "warning: realization point #2 (adaptive batch 1): designed realization 2 drew no magnitude "
+                    "above the range"], said
