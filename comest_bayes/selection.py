@@ -544,7 +544,10 @@ def select_model(data, candidates, *, seed: int, margin: float = 4.0, margin_se:
     (:func:`comest_bayes.checks.shape_check`) has ``p >= P_WARN``.  A simpler
     model that is biased by a third of its sd or more relative to a model
     that can follow any monotone transition is therefore never chosen: its
-    intervals would not cover.  The most flexible candidate is adequate by
+    intervals would not cover.  A quantity undefined (not finite in half the
+    draws or more) in both the candidate and the reference is skipped: both
+    place that crossing beyond the searched range (e.g. a purity that never
+    falls to one half).  The most flexible candidate is adequate by
     definition.
 
     **Rule**: choose the first (simplest) candidate that is adequate and has
@@ -693,8 +696,13 @@ m SE}_\Delta)` nats).  If no adequate candidate is
                 mean, sd = _moments(np.asarray(values, float))
                 ref, _ = _moments(np.asarray(extra[top]["q_draws"][qname], float))
                 z = abs(mean - ref) / sd if sd > 0 and math.isfinite(mean) and math.isfinite(ref) else math.nan
-                qsum[qname] = {"mean": mean, "sd": sd, "diff_over_sd": z}
-                if name != top and not (z <= adequacy_fraction):
+                # a level that neither this candidate nor the reference reaches in most draws (a purity that
+                # never falls to one half) is no disagreement: both say the crossing lies outside the searched
+                # range, where no injection informs either; one defined and the other not is one
+                both_undefined = not math.isfinite(mean) and not math.isfinite(ref)
+                qsum[qname] = {"mean": mean, "sd": sd, "diff_over_sd": z, **({"undefined": True} if both_undefined
+                                                                            else {})}
+                if name != top and not both_undefined and not (z <= adequacy_fraction):
                     ok = False
         p_shape = (info.get("shape") or {}).get("p_value")
         if name != top and p_shape is not None and p_shape < P_WARN:

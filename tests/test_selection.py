@@ -248,3 +248,36 @@ def test_laplace_loo_agrees_with_psis_loo_on_posterior_draws():
     d_lap = out["logistic_depth"][0].elpd - out["logistic"][0].elpd
     d_psis = out["logistic_depth"][1].elpd - out["logistic"][1].elpd
     assert d_lap == pytest.approx(d_psis, abs=1.0) and d_lap > 20
+
+
+def test_a_level_no_candidate_reaches_does_not_make_the_simple_candidates_inadequate():
+    # A purity-like curve: f = 0.995 over the whole injected range, so the image-average f of no candidate falls
+    # to one half within [lo - 1, hi + 1] in most draws: m50 is undefined in every candidate.  Both the
+    # candidate and the reference (the spline) then agree that the crossing is beyond the data, and that
+    # quantity must not decide (it made every simpler rung inadequate and sent the demo's buldisk purity fit
+    # to a 21-parameter spline sampled by emcee for 22 s).  The other quantities still decide.
+    from comest_bayes.checks import P_WARN
+    from comest_bayes.fitting import targeted_quantities
+    from comest_bayes.likelihood import Covariates, compress_for
+    from comest_bayes.posterior import Footprint
+
+    rng = np.random.default_rng(31)
+    n = 3000
+    m = rng.uniform(18.0, 25.0, n)
+    det = rng.random(n) < 0.995
+    cov = Covariates.make(m, depth=0.0)
+    candidates = ["logistic_depth", "spline_depth"]
+    data = compress_for(candidates, cov, det, dm=0.04)
+    cells = Footprint(depth=np.zeros(1), u=np.zeros(1), v=np.zeros(1), weight=np.ones(1), npix=1)
+    quantities = targeted_quantities(cells, (20.0, 23.0), 18.0, 25.0)
+    res = select_model(data, candidates, seed=8, quantities=quantities)
+    rows = {r["name"]: r for r in res.table}
+    for name in candidates:
+        assert rows[name]["quantities"]["m50"].get("undefined") is True, res.format_table()
+    simple = rows["logistic_depth"]
+    others = [q for k, q in simple["quantities"].items() if k != "m50"]
+    expected = all(q.get("undefined") or q["diff_over_sd"] <= 1.0 / 3.0 for q in others) and (simple["shape_p"] is None
+                                                                       or simple["shape_p"] >= P_WARN)
+    assert simple["adequate"] == expected
+    assert expected, res.format_table()  # on this plateau the simple rung agrees with the spline
+    assert res.chosen == "logistic_depth"
