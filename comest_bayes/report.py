@@ -378,7 +378,7 @@ def _binned_table(r: _Report, kind: str) -> None:
 
 
 def _kind_sections(r: _Report) -> None:
-    from .plots.completeness import ratios_figure
+    from .plots.completeness import band_caption, ratios_figure
 
     run = r.run
     depth = RD.depth_lines(run.summary)
@@ -394,11 +394,15 @@ def _kind_sections(r: _Report) -> None:
                 notes[q] = "no posterior curve: " + why
                 r.note(f"{kind} {q}: no posterior curve ({why}).")
         comp, pur = RD.binned_curve(run, kind, "completeness"), RD.binned_curve(run, kind, "purity")
+        widths = " ".join(f"{q.capitalize()}: {band_caption(bands[q], q)}." for q in ("completeness", "purity")
+                          if bands[q] is not None)
         r.figure(f"ratios_{kind}", f"Completeness and purity of {kind} injections",
                  "Left: completeness (fraction of usable injections detected) versus true magnitude; right: purity "
                  "(fraction of counted detections that are injections) versus measured magnitude. Points: binned "
                  "ratios with their binomial intervals; line and bands: posterior median with 68% and 95% "
-                 "bands of the image-average model; dashed lines: 5σ depths of the median noise.",
+                 "bands of the image-average model; dashed lines: 5σ depths of the median noise. Lower panels: "
+                 "the width (upper minus lower limit) of the 68% and 95% bands, on their own scale. "
+                 + widths,
                  lambda: ratios_figure(kind, comp, pur, completeness_posterior=bands["completeness"],
                                        purity_posterior=bands["purity"], depth=depth, notes=notes))
         _binned_table(r, kind)
@@ -433,10 +437,14 @@ def _magnitudes_section(r: _Report) -> None:
         r.note("no matched catalogs (catalogs/<kind>_matched.fits) in this run.")
         return
     col = run.config.matching.mag_column.upper()
+    ranges = {kind: run.kind(kind).get("mag_range") for kind in pairs}
+    ranges = {k: v for k, v in ranges.items() if v and None not in v}
     r.figure("magnitudes", "Measured versus true magnitude of recovered injections",
              f"Density of recovered injections (log colour scale) in measured {col} versus injected magnitude, "
-             "with the 1:1 line and the running median.",
-             lambda: magnitude_comparison_figure(pairs, measured_label=col))
+             "with the 1:1 line and the running median; the axes span the whole injected range ("
+             + "; ".join(f"{k}: {v[0]:.2f}-{v[1]:.2f} mag" for k, v in ranges.items())
+             + "), so the faint end, where few injections are recovered, shows too.",
+             lambda: magnitude_comparison_figure(pairs, measured_label=col, ranges=ranges))
 
 
 def _maps_section(r: _Report) -> None:
@@ -594,19 +602,25 @@ def _adaptive_section(r: _Report) -> None:
     ad = (r.run.summary or {}).get("adaptive")
     if not ad:
         return
+    at_f = ad.get("target") == "f"
+    mags = ", ".join(f"{m:.2f}" for m in ad.get("magnitudes") or [])
+    goal = (f"the posterior sd of the image-average f at {mags} mag reaches {ad.get('precision')}" if at_f
+            else f"the 68% half-width of m50 reaches {ad.get('precision')} mag")
     r.h2("adaptive", "Adaptive injection")
     r.p(f"Batches of realizations whose magnitudes follow the current posterior (docs/adaptive.md), "
-        f"{ad.get('uniform_share', 0):.0%} of each uniform, until the 68% half-width of m50 reaches "
-        f"{ad.get('precision')} mag. The binned ratios stay valid per bin, but bins far from m50 hold fewer "
-        "injections than a uniform run's, so their intervals are wider (see the counts per bin above).")
+        f"{ad.get('uniform_share', 0):.0%} of each uniform, until {goal}. The binned ratios stay valid per bin, "
+        "but bins far from the design's target hold fewer injections than a uniform run's, so their intervals are "
+        "wider (see the counts per bin above).")
     rows = []
     for kind, info in (ad.get("kinds") or {}).items():
         for b in info.get("batches", []):
             rows.append([kind, str(b["batch"]), b["design"], f"{b['realizations'][0]}-{b['realizations'][1] - 1}",
                          str(b["injections"]), _num(b.get("m50"), "{:.3f}"), _num(b.get("halfwidth"), "{:.4f}"),
-                         _num(b.get("within_0.6_of_m50"), "{:.0%}")])
+                         _num(b.get("within_0.6_of_m50"), "{:.0%}")]
+                        + ([", ".join(f"{v:.4f}" for v in b.get("f_sd") or [])] if at_f else []))
     r.table(["kind", "batch", "design", "realizations", "injections so far", "m50", "68% half-width",
-             "batch within 0.6 mag of m50"], rows, numeric=(1, 4, 5, 6, 7))
+             "batch within 0.6 mag of m50"] + ([f"sd of f at {mags}"] if at_f else []), rows,
+            numeric=(1, 4, 5, 6, 7))
     for kind, info in (ad.get("kinds") or {}).items():
         r.p(f"{kind}: {'precision reached' if info.get('reached') else 'precision NOT reached'}: "
             f"{info.get('reason', '')}", None if info.get("reached") else "warn")
@@ -616,18 +630,22 @@ def _adaptive_section(r: _Report) -> None:
 
         fig, ax = plt.subplots(figsize=(6, 4))
         for kind, info in (ad.get("kinds") or {}).items():
-            pts = [(b["injections"], b["halfwidth"]) for b in info.get("batches", []) if b.get("halfwidth")]
+            if at_f:  # the largest sd over the chosen magnitudes: the number the target is compared with
+                pts = [(b["injections"], max(b["f_sd"])) for b in info.get("batches", []) if b.get("f_sd")]
+            else:
+                pts = [(b["injections"], b["halfwidth"]) for b in info.get("batches", []) if b.get("halfwidth")]
             if pts:
                 ax.loglog(*zip(*pts), "o-", label=kind)
         ax.axhline(ad.get("precision"), color="k", lw=0.8, ls=":", label="target")
         ax.set_xlabel("injections")
-        ax.set_ylabel("68% half-width of m50 (mag)")
+        ax.set_ylabel(f"largest posterior sd of f at {mags} mag" if at_f else "68% half-width of m50 (mag)")
         ax.grid(alpha=0.3, which="both")
         ax.legend()
         return fig
 
     r.figure("adaptive_precision", "Precision against injections",
-             "The 68% half-width of the image-average m50 after each batch.", make)
+             (f"The largest posterior sd of the image-average f at {mags} mag after each batch." if at_f
+              else "The 68% half-width of the image-average m50 after each batch."), make)
 
 
 def _config_text(config: dict) -> str:

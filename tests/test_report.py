@@ -50,6 +50,29 @@ def report_run(tile, tmp_path_factory):
 
 
 @pytest.fixture(scope="module")
+def report_figures(report_run):
+    """The report's matplotlib figures by name (the report is written again, keeping them)."""
+    from comest_bayes import report as R
+
+    figures = {}
+    original = R._Report.figure
+
+    def keep(self, name, title, caption, make):
+        def made():
+            fig = make()
+            figures[name] = (fig, caption)
+            return fig
+        return original(self, name, title, caption, made)
+
+    R._Report.figure = keep
+    try:
+        write_report(report_run[0], out=report_run[0] / "again.html")
+    finally:
+        R._Report.figure = original
+    return figures
+
+
+@pytest.fixture(scope="module")
 def partial_run(report_run, tmp_path_factory):
     """The same run with its posteriors removed and one kind only (as a run with fit.model=none, kinds=point)."""
     src = report_run[0]
@@ -143,6 +166,47 @@ def test_report_tables_hold_the_numbers_of_the_run(report_run):
     for stage in ("detect", "sourcefree", "baseline", "inject", "ratios", "fit"):
         assert f"<td>{stage}</td>" in html
     assert 'model = "logistic"' in html and "[detection]" in html
+
+
+def test_measured_versus_true_panel_spans_the_faintest_injection(report_run, report_figures):
+    from astropy.table import Table
+
+    out = report_run[0]
+    fig, caption = report_figures["magnitudes"]
+    summary = json.loads((out / "summary.json").read_text())
+    for ax, kind in zip([a for a in fig.axes if a.get_title()], summary["kinds"]):
+        assert ax.get_title() == f"{kind}: recovered injections"
+        injected = np.asarray(Table.read(out / "catalogs" / f"{kind}_outcomes.fits")["mag"], float)
+        lo, hi = ax.get_xlim()
+        # the whole injected range, not only where recovered pairs are dense
+        assert lo <= injected.min() and hi >= injected.max()
+        assert ax.get_ylim() == (lo, hi)
+        r = summary["kinds"][kind]["mag_range"]
+        assert f"{kind}: {r[0]:.2f}-{r[1]:.2f} mag" in caption
+
+
+def test_band_widths_are_drawn_and_stated_from_the_posterior(report_run, report_figures):
+    out, path, _ = report_run
+    run = RD.open_run(out)
+    html = path.read_text()
+    for kind in run.kinds:
+        fig, caption = report_figures[f"ratios_{kind}"]
+        k = run.kind(kind)
+        lo, hi = k["mag_range"]
+        mags = np.linspace(lo - 0.3, hi + 0.3, 141)
+        band = RD.posterior_band(RD.load_posterior(run, kind, "completeness"), mags, label="x")
+        w95 = np.asarray(band.hi95) - np.asarray(band.lo95)
+        j = int(np.argmax(w95))
+        # the caption's numbers are the posterior's widest 95% and 68% bands and where the 95% one is
+        assert f"widest 95% band {w95[j]:.3f} in f (at {mags[j]:.2f} mag)" in caption
+        w68 = np.max(np.asarray(band.hi68) - np.asarray(band.lo68))
+        assert f"widest 68% band {w68:.3f}" in caption
+        assert f"widest 95% band {w95[j]:.3f} in f" in html
+        # the band-width panel under the completeness panel draws hi95 - lo95 against magnitude
+        low = fig.axes[1]
+        assert low.get_ylabel() == "band width"
+        np.testing.assert_allclose(low.lines[0].get_xdata(), mags)
+        np.testing.assert_allclose(low.lines[0].get_ydata(), w95, rtol=1e-6, atol=1e-9)
 
 
 def test_rerendered_realization_is_the_saved_simulated_image(report_run):

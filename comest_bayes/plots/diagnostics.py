@@ -15,6 +15,7 @@ from __future__ import annotations
 import numpy as np
 
 from . import COLORS, new_axes, new_figure
+from .completeness import outside_legend
 from .data import ChainSamples
 
 __all__ = ["selection_plot", "autocorrelation_plot", "trace_plot", "sampler_figure"]
@@ -72,7 +73,7 @@ def selection_plot(table: list, *, ax=None, margin: float = 4.0, margin_se: floa
     pad = 0.08 * (hi - lo) + 0.5
     ax.set_xlim(lo - pad, hi + pad)
     ax.set_ylim(-0.7, len(table) - 0.3)
-    ax.legend(loc="lower left", fontsize=8, framealpha=0.9)
+    outside_legend(ax, below=False, ncol=1)  # outside the data: a legend inside hid rows' markers
     ax.grid(axis="x", alpha=0.25)
     return ax
 
@@ -103,7 +104,7 @@ def autocorrelation_plot(names, tau, nsteps: int, *, ax=None, converge_factor: f
     ax.set_xticks(x, list(names), rotation=30, ha="right")
     ax.set_ylabel("autocorrelation time (steps)")
     ax.set_title(f"autocorrelation ({nsteps} steps per walker)", fontsize=10)
-    ax.legend(loc="upper right", fontsize=8)
+    outside_legend(ax, below=False, ncol=1)
     ax.grid(axis="y", alpha=0.25)
     return ax
 
