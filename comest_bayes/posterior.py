@@ -42,7 +42,7 @@ from .errors import InputError
 from .likelihood import BinomialData, CompletenessModel, Covariates
 from .modelspec import ModelSpec, spec_from_mapping
 
-__all__ = ["CompletenessPosterior", "Footprint", "ExtrapolationWarning", "average_prob", "average_crossings", "coarse_noise_map", "footprint_sample",
+__all__ = ["CompletenessPosterior", "Footprint", "FootprintHistogram", "ExtrapolationWarning", "average_prob", "average_crossings", "coarse_noise_map", "footprint_sample",
            "crossing_magnitudes"]
 
 #: Largest number of (draw, position, magnitude) values evaluated at once by image averages.
@@ -99,61 +99,34 @@ class Footprint:
             Depth step, mag (default 0.01).
         nuv : int
             Blocks per image side (1 when the model has no smooth term).
+
+        Notes
+        -----
+        The one pass over the pixels is :meth:`FootprintHistogram.from_maps`,
+        which does not depend on ``sigma_ref``: a run computes it once and
+        every fit takes its cells with :meth:`from_histogram`.
         """
-        mask = np.asarray(mask, bool)
-        ny, nx = mask.shape
-        use_noise = noise is not None and bool(sigma_ref)
-        if use_noise:
-            noise = np.asarray(noise)
-            if noise.shape != mask.shape:
-                raise InputError(f"noise map {noise.shape} and mask {mask.shape} differ in shape.")
-        rows = max(1, FOOTPRINT_CHUNK // max(nx, 1))
+        return cls.from_histogram(FootprintHistogram.from_maps(noise, mask, ddepth=ddepth, nuv=nuv), sigma_ref)
 
-        def chunks():
-            # (row offset, unmasked rows/columns, depth) of blocks of rows: small arrays, no full-image copies
-            for j0 in range(0, ny, rows):
-                good = ~mask[j0:j0 + rows]
-                jj, ii = np.nonzero(good)
-                depth = np.zeros(jj.size)
-                if use_noise:
-                    sig = noise[j0:j0 + rows][good].astype(np.float64)
-                    ok = np.isfinite(sig) & (sig > 0)
-                    depth[ok] = -2.5 * np.log10(sig[ok] / float(sigma_ref))
-                yield jj + j0, ii, depth
+    @classmethod
+    def from_histogram(cls, hist: "FootprintHistogram", sigma_ref: float | None) -> "Footprint":
+        """The cells of a :class:`FootprintHistogram` at the depth covariate of ``sigma_ref``.
 
-        # the depth range from the noise extremes (depth falls as the noise rises); pixels without a valid
-        # noise sit at depth 0, as in the outcome table
-        good_px = ~mask
-        npix = int(np.count_nonzero(good_px))
-        if npix == 0:
-            raise InputError("the mask leaves no unmasked pixel to average over.")
-        dmin = dmax = 0.0
-        if use_noise:
-            with np.errstate(invalid="ignore"):
-                valid = good_px & np.isfinite(noise) & (noise > 0)
-            nvalid = int(np.count_nonzero(valid))
-            if nvalid:
-                smin, smax = float(np.min(noise[valid])), float(np.max(noise[valid]))
-                dmin = -2.5 * math.log10(smax / float(sigma_ref))
-                dmax = -2.5 * math.log10(smin / float(sigma_ref))
-                if nvalid < npix:
-                    dmin, dmax = min(dmin, 0.0), max(dmax, 0.0)
-        # integer keys over a dense range, so the cells come from bincount (linear time, no sort)
-        nd = int(np.floor((dmax - dmin) / ddepth)) + 1
-        size = nd * nuv * nuv
-        n, sd, su, sv = (np.zeros(size) for _ in range(4))
-        for jj, ii, depth in chunks():
-            # clipped: the extremes computed above may differ from the per-pixel values by a rounding error
-            key = np.clip(np.floor((depth - dmin) / ddepth).astype(np.int64), 0, nd - 1)
-            if nuv > 1:
-                key = (key * nuv + np.minimum(ii * nuv // nx, nuv - 1)) * nuv + np.minimum(jj * nuv // ny, nuv - 1)
-            n += np.bincount(key, minlength=size)
-            sd += np.bincount(key, weights=depth, minlength=size)
-            su += np.bincount(key, weights=2.0 * ii / max(nx - 1, 1) - 1.0, minlength=size)
-            sv += np.bincount(key, weights=2.0 * jj / max(ny - 1, 1) - 1.0, minlength=size)
-        used = n > 0
-        n = n[used]
-        return cls(depth=sd[used] / n, u=su[used] / n, v=sv[used] / n, weight=n / n.sum(), npix=npix)
+        The depth of a pixel is ``-2.5 log10(sigma / sigma_ref) = l + 2.5 log10(sigma_ref)`` with
+        ``l = -2.5 log10(sigma)``: a shift of the histogram's mean ``l`` per cell.  Pixels without a valid
+        noise (and every pixel when there is no noise map or no ``sigma_ref``) sit at depth 0.
+        """
+        if sigma_ref and hist.has_noise:
+            depth = np.where(hist.valid, hist.level + 2.5 * math.log10(float(sigma_ref)), 0.0)
+            n, u, v = hist.n, hist.u, hist.v
+        else:
+            # depth 0 everywhere: the cells of one (u, v) block merge
+            blocks, inv = np.unique(hist.block, return_inverse=True)
+            n = np.bincount(inv, weights=hist.n)
+            u = np.bincount(inv, weights=hist.n * hist.u) / n
+            v = np.bincount(inv, weights=hist.n * hist.v) / n
+            depth = np.zeros(blocks.size)
+        return cls(depth=np.asarray(depth, np.float64), u=u, v=v, weight=n / n.sum(), npix=hist.npix)
 
     @classmethod
     def from_points(cls, x, y, noise, sigma_ref: float | None, shape) -> "Footprint":
@@ -184,6 +157,103 @@ class Footprint:
             return None
         return cls(depth=np.array(z["fp_depth"]), u=np.array(z["fp_u"]), v=np.array(z["fp_v"]),
                    weight=np.array(z["fp_weight"]), npix=int(z["fp_npix"]))
+
+
+@dataclass(frozen=True)
+class FootprintHistogram:
+    """Every unmasked pixel grouped by noise level and position block: the one pass over the maps.
+
+    Independent of the depth covariate's reference noise, so one histogram serves the fits of
+    every kind and quantity of a run (:meth:`Footprint.from_histogram`).
+
+    Attributes
+    ----------
+    n : ndarray (P,)
+        Pixels per cell.
+    level : ndarray (P,)
+        Mean ``-2.5 log10(sigma)`` of the cell's pixels (0 for cells without a valid noise).
+    valid : ndarray of bool (P,)
+        The cell's pixels have a finite positive noise.
+    u, v : ndarray (P,)
+        Mean normalised coordinates.
+    block : ndarray of int (P,)
+        The ``nuv`` x ``nuv`` position block of the cell.
+    npix : int
+        Unmasked pixels.
+    has_noise : bool
+        A noise map was given.
+    ddepth : float
+    nuv : int
+    """
+
+    n: np.ndarray
+    level: np.ndarray
+    valid: np.ndarray
+    u: np.ndarray
+    v: np.ndarray
+    block: np.ndarray
+    npix: int
+    has_noise: bool
+    ddepth: float
+    nuv: int
+
+    @classmethod
+    def from_maps(cls, noise: np.ndarray | None, mask: np.ndarray, *, ddepth: float = 0.01,
+                  nuv: int = 1) -> "FootprintHistogram":
+        """Bin the unmasked pixels in steps of ``ddepth`` mag of ``-2.5 log10(sigma)`` and ``nuv`` blocks a side.
+
+        Pixels whose noise is not finite and positive form cells of their own (``valid`` False).
+        Rows are read in blocks of :data:`FOOTPRINT_CHUNK` pixels (bounded memory).
+        """
+        mask = np.asarray(mask, bool)
+        ny, nx = mask.shape
+        if not (ddepth > 0 and int(nuv) >= 1):
+            raise InputError(f"footprint histogram: ddepth must be > 0 and nuv >= 1, got {ddepth} and {nuv}.")
+        nuv = int(nuv)
+        has_noise = noise is not None
+        if has_noise:
+            noise = np.asarray(noise)
+            if noise.shape != mask.shape:
+                raise InputError(f"noise map {noise.shape} and mask {mask.shape} differ in shape.")
+        good_px = ~mask
+        npix = int(np.count_nonzero(good_px))
+        if npix == 0:
+            raise InputError("the mask leaves no unmasked pixel to average over.")
+        # the level range from the noise extremes (linear-time integer keys for bincount, no sort)
+        lmin = lmax = 0.0
+        if has_noise:
+            with np.errstate(invalid="ignore"):
+                valid_px = good_px & np.isfinite(noise) & (noise > 0)
+            if np.any(valid_px):
+                lmin = -2.5 * math.log10(float(np.max(noise[valid_px])))
+                lmax = -2.5 * math.log10(float(np.min(noise[valid_px])))
+        nl = int(np.floor((lmax - lmin) / ddepth)) + 2  # the last key holds the pixels without a valid noise
+        size = nl * nuv * nuv
+        cnt, sl, su, sv = (np.zeros(size) for _ in range(4))
+        rows = max(1, FOOTPRINT_CHUNK // max(nx, 1))
+        for j0 in range(0, ny, rows):
+            good = good_px[j0:j0 + rows]
+            jj, ii = np.nonzero(good)
+            jj = jj + j0
+            level = np.zeros(jj.size)
+            key = np.full(jj.size, nl - 1, dtype=np.int64)
+            if has_noise:
+                sig = noise[j0:j0 + rows][good].astype(np.float64)
+                ok = np.isfinite(sig) & (sig > 0)
+                level[ok] = -2.5 * np.log10(sig[ok])
+                # clipped: the extremes above may differ from the per-pixel values by a rounding error
+                key[ok] = np.clip(np.floor((level[ok] - lmin) / ddepth).astype(np.int64), 0, nl - 2)
+            if nuv > 1:
+                key = (key * nuv + np.minimum(ii * nuv // nx, nuv - 1)) * nuv + np.minimum(jj * nuv // ny, nuv - 1)
+            cnt += np.bincount(key, minlength=size)
+            sl += np.bincount(key, weights=level, minlength=size)
+            su += np.bincount(key, weights=2.0 * ii / max(nx - 1, 1) - 1.0, minlength=size)
+            sv += np.bincount(key, weights=2.0 * jj / max(ny - 1, 1) - 1.0, minlength=size)
+        used = np.flatnonzero(cnt > 0)
+        n = cnt[used]
+        lkey = used // (nuv * nuv)
+        return cls(n=n, level=sl[used] / n, valid=lkey < nl - 1, u=su[used] / n, v=sv[used] / n,
+                   block=used % (nuv * nuv), npix=npix, has_noise=has_noise, ddepth=float(ddepth), nuv=nuv)
 
 
 def average_prob(model, thetas: np.ndarray, mags, footprint: Footprint) -> np.ndarray:

@@ -6,8 +6,8 @@ import numpy as np
 import pytest
 
 from comest_bayes.likelihood import BinomialData, CompletenessModel, Covariates
-from comest_bayes.posterior import (CompletenessPosterior, ExtrapolationWarning, Footprint, average_crossings,
-                                    average_prob)
+from comest_bayes.posterior import (CompletenessPosterior, ExtrapolationWarning, Footprint, FootprintHistogram,
+                                    average_crossings, average_prob)
 
 SHAPE = (120, 160)
 
@@ -47,6 +47,39 @@ def test_footprint_average_equals_the_average_over_every_pixel():
     # posterior sd the benchmarks reach
     np.testing.assert_allclose(cells, brute, atol=3e-5)
     assert len(fp) < d.size / 20
+
+
+def test_one_footprint_histogram_serves_every_reference_noise():
+    # The run computes the pixel pass once; each fit shifts it to its own sigma_ref.  The cells must be
+    # exactly those of a direct pass with that sigma_ref: the same pixels in each cell (counts and
+    # positions), depths shifted by 2.5 log10 of the ratio of reference noises.
+    noise, mask = _maps(2)
+    noise[5:9, 5:40] = np.nan  # pixels without a valid noise sit at depth 0 whatever sigma_ref
+    noise[40:42, 10:20] = 0.0
+    for ddepth, nuv in ((0.01, 1), (0.02, 8)):
+        hist = FootprintHistogram.from_maps(noise, mask, ddepth=ddepth, nuv=nuv)
+        assert hist.n.sum() == (~mask).sum() == hist.npix
+        assert hist.n[~hist.valid].sum() == 35 * 4 + 2 * 10
+        for sigma_ref in (4.0, 7.5):
+            fp = Footprint.from_histogram(hist, sigma_ref)
+            jj, ii = np.nonzero(~mask)
+            sig = noise[jj, ii]
+            ok = np.isfinite(sig) & (sig > 0)
+            depth = np.zeros(sig.size)
+            depth[ok] = -2.5 * np.log10(sig[ok] / sigma_ref)
+            # the footprint's weighted moments equal the pixels' own
+            assert np.sum(fp.weight * fp.depth) == pytest.approx(depth.mean(), abs=1e-12)
+            u = 2.0 * ii / (SHAPE[1] - 1) - 1.0
+            assert np.sum(fp.weight * fp.u) == pytest.approx(u.mean(), abs=1e-12)
+            # and every cell is narrower than its depth step (pixels grouped by depth, not merged across it)
+            assert np.all(fp.depth[hist.valid] <= depth[ok].max() + 1e-12)
+            assert np.all(fp.depth[~hist.valid] == 0.0)
+        shifted = Footprint.from_histogram(hist, 7.5).depth - Footprint.from_histogram(hist, 4.0).depth
+        np.testing.assert_allclose(shifted[hist.valid], 2.5 * np.log10(7.5 / 4.0), rtol=0, atol=1e-12)
+    # no noise map: one cell per position block, at depth 0
+    hist = FootprintHistogram.from_maps(None, mask, nuv=4)
+    fp = Footprint.from_histogram(hist, 3.0)
+    assert len(fp.weight) == 16 and np.all(fp.depth == 0.0) and fp.weight.sum() == pytest.approx(1.0)
 
 
 def test_crossings_are_exact_roots_of_the_average_curve():
