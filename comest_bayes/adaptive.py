@@ -24,12 +24,12 @@ from dataclasses import dataclass, field
 import numpy as np
 from astropy.table import Table, vstack
 
-from .design import DEFAULT_UNIFORM_SHARE, TARGETS, MagnitudeDesign, design_from_draws, uniform_design
+from .design import DEFAULT_UNIFORM_SHARE, TARGETS, MagnitudeDesign, curves_at, design_from_draws, uniform_design
 from .errors import InputError
 from .seeding import rng_for
 
 __all__ = ["AdaptiveSettings", "BatchRecord", "SequentialResult", "run_sequential", "PosteriorView",
-           "after_batch", "check_recorded", "package_fitter"]
+           "after_batch", "attained", "check_recorded", "check_magnitudes", "package_fitter"]
 
 
 @dataclass(frozen=True)
@@ -39,7 +39,9 @@ class AdaptiveSettings:
     Attributes
     ----------
     precision : float
-        Target half-width of the 68% interval of the image-average m50 (mag).
+        Target half-width of the 68% interval of the image-average m50 (mag);
+        with ``target="f"``, the largest posterior standard deviation of the
+        image-average f at ``magnitudes`` (a fraction, below 0.5).
     pilot : int
         Injections of the first (uniform) batch.
     growth : float
@@ -52,8 +54,11 @@ class AdaptiveSettings:
         Stop here even if the precision is not reached (and say so).
     uniform_share : float
         Share of every adaptive batch drawn uniformly over the range.
-    target : {"m50", "curve"}
-        What the design aims at.
+    target : {"m50", "curve", "f"}
+        What the design aims at (``"curve"`` still stops on the m50 half-width;
+        ``"f"`` aims at, and stops on, f at ``magnitudes``).
+    magnitudes : tuple of float
+        For ``target="f"``: the magnitudes at which f must be precise.
     """
 
     precision: float = 0.02
@@ -63,6 +68,7 @@ class AdaptiveSettings:
     max_injections: int = 100_000
     uniform_share: float = DEFAULT_UNIFORM_SHARE
     target: str = "m50"
+    magnitudes: tuple = ()
 
     def __post_init__(self):
         if not (self.precision > 0 and math.isfinite(self.precision)):
@@ -76,6 +82,17 @@ class AdaptiveSettings:
             raise InputError(f"uniform_share = {self.uniform_share} must lie in [0, 1].")
         if self.target not in TARGETS:
             raise InputError(f"target must be one of {TARGETS}, got {self.target!r}.")
+        object.__setattr__(self, "magnitudes", tuple(float(m) for m in self.magnitudes))
+        if self.target == "f":
+            if not self.magnitudes or not all(math.isfinite(m) for m in self.magnitudes):
+                raise InputError(f"target 'f' needs finite magnitudes at which f must be precise, got "
+                                 f"{list(self.magnitudes)}; e.g. magnitudes=(23.5, 24.0).")
+            if not self.precision < 0.5:
+                raise InputError(f"precision = {self.precision} is a standard deviation of f with target 'f': "
+                                 "it must lie below 0.5 (e.g. 0.02).")
+        elif self.magnitudes:
+            raise InputError(f"magnitudes {list(self.magnitudes)} are used only by target 'f' (target is "
+                             f"{self.target!r}); set target='f' or drop them.")
 
     def batch_size(self, done: int) -> int:
         """Injections of the next batch after ``done`` so far (the pilot first)."""
@@ -107,6 +124,30 @@ class PosteriorView:
         ok = np.isfinite(self.m50)
         return float(np.median(self.m50[ok])) if ok.any() else math.nan
 
+    def f_sd(self, magnitudes) -> np.ndarray:
+        """Posterior standard deviation of the image-average f at each of ``magnitudes``."""
+        return curves_at(self.grid, self.curves, magnitudes).std(axis=0, ddof=1)
+
+    def f_median(self, magnitudes) -> np.ndarray:
+        """Posterior median of the image-average f at each of ``magnitudes``."""
+        return np.median(curves_at(self.grid, self.curves, magnitudes), axis=0)
+
+
+def attained(view: PosteriorView, target: str, magnitudes=()) -> float:
+    """The number compared with the precision target: the m50 half-width, or with ``target="f"`` the
+    largest posterior sd of f at ``magnitudes``."""
+    if target == "f":
+        return float(np.max(view.f_sd(magnitudes)))
+    return view.m50_halfwidth
+
+
+def check_magnitudes(magnitudes, lo: float, hi: float) -> None:
+    """Refuse target magnitudes outside the injected range (no injection could make f precise there)."""
+    bad = [m for m in magnitudes if not lo <= m <= hi]
+    if bad:
+        raise InputError(f"the magnitudes {bad} at which f must be precise lie outside the injected range "
+                         f"[{lo:.2f}, {hi:.2f}]; choose magnitudes inside it or widen injection.mag_range.")
+
 
 @dataclass
 class BatchRecord:
@@ -120,12 +161,16 @@ class BatchRecord:
     halfwidth: float
     fit_seconds: float
     simulate_seconds: float
+    f_sd: tuple = ()
 
     def to_dict(self) -> dict:
-        return {"index": self.index, "n": self.n, "total": self.total, "design": self.design.to_dict(),
-                "m50": None if not math.isfinite(self.m50) else self.m50,
-                "halfwidth": None if not math.isfinite(self.halfwidth) else self.halfwidth,
-                "fit_seconds": round(self.fit_seconds, 3), "simulate_seconds": round(self.simulate_seconds, 3)}
+        out = {"index": self.index, "n": self.n, "total": self.total, "design": self.design.to_dict(),
+               "m50": None if not math.isfinite(self.m50) else self.m50,
+               "halfwidth": None if not math.isfinite(self.halfwidth) else self.halfwidth,
+               "fit_seconds": round(self.fit_seconds, 3), "simulate_seconds": round(self.simulate_seconds, 3)}
+        if self.f_sd:
+            out["f_sd"] = [float(v) for v in self.f_sd]
+        return out
 
 
 @dataclass
@@ -151,13 +196,27 @@ def check_recorded(recorded: MagnitudeDesign, design: MagnitudeDesign, k: int) -
 
 
 def after_batch(view: PosteriorView, lo: float, hi: float, *, precision: float, at_cap: bool, spent: str,
-                target: str, uniform_share: float):
+                target: str, uniform_share: float, magnitudes=()):
     """What follows a batch: ``(reached, reason, next design)``.
 
-    ``reached`` when the m50 half-width is at most ``precision``; otherwise
-    stopped (with the reason) ``at_cap``, or the design of the next batch.
-    ``spent`` words the effort so far for the reason (e.g. ``"3375 injections"``).
+    ``reached`` when the m50 half-width (with ``target="f"``: the posterior
+    sd of f at every one of ``magnitudes``) is at most ``precision``;
+    otherwise stopped (with the reason) ``at_cap``, or the design of the next
+    batch.  With ``target="f"`` that design aims only at the magnitudes whose
+    f is not yet precise enough.  ``spent`` words the effort so far for the
+    reason (e.g. ``"3375 injections"``).
     """
+    if target == "f":
+        sd = view.f_sd(magnitudes)
+        worst = float(np.max(sd))
+        said = "sd of f at " + ", ".join(f"{m:.2f}" for m in magnitudes) + " " + ", ".join(f"{v:.4f}" for v in sd)
+        if worst <= precision:
+            return True, f"{said} <= {precision} after {spent}", None
+        if at_cap:
+            return False, f"stopped at the cap of {spent} with {said} (largest > {precision})", None
+        unmet = [m for m, v in zip(magnitudes, sd) if v > precision]
+        return False, "", design_from_draws(view.grid, view.curves, lo, hi, target="f", magnitudes=unmet,
+                                            uniform_share=uniform_share)
     half = view.m50_halfwidth
     if half <= precision:
         return True, f"m50 half-width {half:.4f} <= {precision} after {spent}", None
@@ -195,6 +254,8 @@ def run_sequential(simulate, fit, lo: float, hi: float, settings: AdaptiveSettin
     -------
     SequentialResult
     """
+    if settings.target == "f":
+        check_magnitudes(settings.magnitudes, lo, hi)
     done = list(done or [])
     tables, batches = [], []
     design = uniform_design(lo, hi)
@@ -219,16 +280,19 @@ def run_sequential(simulate, fit, lo: float, hi: float, settings: AdaptiveSettin
         t1 = time.perf_counter()
         view, post = fit(_stack(tables), k)
         t_fit = time.perf_counter() - t1
+        f_sd = tuple(float(v) for v in view.f_sd(settings.magnitudes)) if settings.target == "f" else ()
         rec = BatchRecord(index=k, n=len(table), total=total, design=design, m50=view.m50_median,
-                          halfwidth=view.m50_halfwidth, fit_seconds=t_fit, simulate_seconds=t_sim)
+                          halfwidth=view.m50_halfwidth, fit_seconds=t_fit, simulate_seconds=t_sim, f_sd=f_sd)
         batches.append(rec)
         log(f"design: batch {k} ({design.target}, {len(table)} injections, "
             f"{100 * design.fraction_within(rec.m50 - 0.6, rec.m50 + 0.6) if math.isfinite(rec.m50) else 0:.0f}% "
-            f"within 0.6 mag of m50): {total} in all, m50 {rec.m50:.3f} +- {rec.halfwidth:.4f} "
-            f"(target {settings.precision})")
+            f"within 0.6 mag of m50): {total} in all, m50 {rec.m50:.3f} +- {rec.halfwidth:.4f}"
+            + (", sd of f " + ", ".join(f"{v:.4f}" for v in f_sd) if f_sd else "")
+            + f" (target {settings.precision})")
         reached, reason, design = after_batch(view, lo, hi, precision=settings.precision,
                                               at_cap=total >= settings.max_injections, spent=f"{total} injections",
-                                              target=settings.target, uniform_share=settings.uniform_share)
+                                              target=settings.target, uniform_share=settings.uniform_share,
+                                              magnitudes=settings.magnitudes)
         if design is None:
             break
         k += 1
@@ -238,12 +302,13 @@ def run_sequential(simulate, fit, lo: float, hi: float, settings: AdaptiveSettin
 
 def package_fitter(*, image_shape, noise, mask, lo: float, hi: float, seed: int, model: str = "auto",
                    kind: str = "point", ngrid: int = 161, nsamples: int = 1000, mag_bin: float = 0.1,
-                   reselect: float = 4.0):
+                   reselect: float = 4.0, magnitudes=()):
     """A ``fit`` callable for :func:`run_sequential` that runs the package's own completeness fit.
 
     Each call fits every outcome so far with :func:`comest_bayes.fitting.fit_kind`
     (seed stream ``("design-fit", k)``) and returns the :class:`PosteriorView`
-    on ``ngrid`` magnitudes over ``[lo, hi]`` and the ``(posterior, entry)``
+    on ``ngrid`` magnitudes over ``[lo, hi]`` (plus ``magnitudes``, so that f
+    there is read without interpolation) and the ``(posterior, entry)``
     pair.  With a selection such as ``auto`` the models are compared on the
     pilot and again whenever the outcomes have grown ``reselect`` times since
     the last comparison; in between, the chosen model is refitted from the
@@ -261,7 +326,7 @@ def package_fitter(*, image_shape, noise, mask, lo: float, hi: float, seed: int,
 
     edges = R.magnitude_edges(lo, hi, mag_bin)
     centers = 0.5 * (edges[:-1] + edges[1:])
-    grid = np.linspace(lo, hi, int(ngrid))
+    grid = np.union1d(np.linspace(lo, hi, int(ngrid)), np.asarray(magnitudes, dtype=np.float64))
     selecting = load_spec(model).is_selection
     state = {"warm": None, "selected_at": 0}
 

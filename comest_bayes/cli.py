@@ -60,6 +60,9 @@ def _add_config_options(p: argparse.ArgumentParser) -> None:
                    help="adaptive injection: add batches of realizations, their magnitudes where the posterior is "
                         "most uncertain, until the 68%% half-width of every kind's m50 is at most MAG "
                         "(e.g. 0.02; docs/adaptive.md); --nsims is then not used")
+    g.add_argument("--precision-at", default=None, metavar="MAGS",
+                   help="adaptive injection aimed at f at these comma-separated magnitudes (e.g. 23.5,24.0): "
+                        "--precision is then the posterior sd of the image-average f there (e.g. 0.02)")
     g.add_argument("--max-nsims", type=int, default=None,
                    help="adaptive injection: most realizations per kind (default 40)")
     g.add_argument("--model", default=None,
@@ -229,6 +232,8 @@ def _config_from_args(args):
             overrides.append(f"{key}={value}")
     if args.no_bnb:
         overrides.append("sourcefree.bnb=false")
+    if getattr(args, "precision_at", None):
+        overrides += ["adaptive.target=f", f"adaptive.magnitudes={args.precision_at}"]
     return load_config(args.config, overrides, seed=args.seed)
 
 

@@ -451,13 +451,16 @@ class AdaptiveConfig:
     of ``ceil(growth x realizations so far)`` realizations draws its
     magnitudes from the design built from the current posterior, with
     ``uniform_share`` of them uniform, until the 68% half-width of the kind's
-    image-average m50 is at most ``precision`` or ``max_nsims`` realizations
-    ran.  ``injection.nsims`` is then not used.
+    image-average m50 (with ``target = "f"``: the posterior standard
+    deviation of the image-average f at each of ``magnitudes``) is at most
+    ``precision`` or ``max_nsims`` realizations ran.  ``injection.nsims`` is
+    then not used.
 
     Parameters
     ----------
     precision : float
-        Target 68% half-width of m50 (mag); 0 (default) turns adaptive
+        Target 68% half-width of m50 (mag), or with ``target = "f"`` the
+        target sd of f (a fraction below 0.5); 0 (default) turns adaptive
         injection off.
     pilot_nsims : int
         Uniform realizations per kind before the first design.
@@ -467,8 +470,12 @@ class AdaptiveConfig:
         Most realizations per kind.
     uniform_share : float
         Share of each adaptive batch drawn uniformly over the magnitude range.
-    target : {"m50", "curve"}
-        What the design aims at: the m50 or the whole transition.
+    target : {"m50", "curve", "f"}
+        What the design aims at: the m50, the whole transition (both stop on
+        the m50 half-width), or f at ``magnitudes`` (and stops on it).
+    magnitudes : tuple of float
+        With ``target = "f"`` (CLI ``--precision-at``): the magnitudes at
+        which f must be precise, inside the injected range.
     """
 
     precision: float = 0.0
@@ -477,6 +484,7 @@ class AdaptiveConfig:
     max_nsims: int = 40
     uniform_share: float = 0.15
     target: str = "m50"
+    magnitudes: tuple = ()
 
     @property
     def enabled(self) -> bool:
@@ -491,7 +499,16 @@ class AdaptiveConfig:
         _check(isinstance(self.max_nsims, int) and self.max_nsims >= self.pilot_nsims, "adaptive.max_nsims",
                self.max_nsims, "an integer >= adaptive.pilot_nsims")
         _check(0.0 <= self.uniform_share <= 1.0, "adaptive.uniform_share", self.uniform_share, "a fraction in [0, 1]")
-        _check(self.target in ("m50", "curve"), "adaptive.target", self.target, "m50 or curve")
+        _check(self.target in ("m50", "curve", "f"), "adaptive.target", self.target, "m50, curve or f")
+        if self.target == "f":
+            _check(len(self.magnitudes) > 0 and all(-float("inf") < m < float("inf") for m in self.magnitudes),
+                   "adaptive.magnitudes", list(self.magnitudes),
+                   "with adaptive.target = 'f', the finite magnitudes at which f must be precise, e.g. [23.5, 24.0]")
+            _check(self.precision < 0.5, "adaptive.precision", self.precision,
+                   "with adaptive.target = 'f', a target sd of f below 0.5 (e.g. 0.02)")
+        else:
+            _check(not self.magnitudes, "adaptive.magnitudes", list(self.magnitudes),
+                   f"no magnitudes with adaptive.target = {self.target!r} (they are read only with target 'f')")
 
 
 @dataclass(frozen=True)

@@ -15,6 +15,8 @@ the image-average completeness curve:
   the sum of the reductions of ``Var f(m')`` over the magnitudes ``m'``
   where the posterior-median curve lies between 0.05 and 0.95 (the
   transition), i.e. the integrated posterior variance of the curve.
+  ``target="f"``: the sum of the reductions of ``Var f(m_j)`` at the
+  magnitudes ``m_j`` the user chose (e.g. the limits of a catalog cut).
 * The batch density is proportional to that gain (a batch spreads over the
   informative region instead of piling onto its maximum), mixed with a
   uniform share (default 15%) so the plateau, the floor and any surprise
@@ -39,11 +41,11 @@ import numpy as np
 
 from .errors import InputError
 
-__all__ = ["MagnitudeDesign", "uniform_design", "variance_reduction", "design_from_draws", "TARGETS",
-           "DEFAULT_UNIFORM_SHARE", "DESIGN_BINS"]
+__all__ = ["MagnitudeDesign", "uniform_design", "variance_reduction", "design_from_draws", "curves_at",
+           "TARGETS", "DEFAULT_UNIFORM_SHARE", "DESIGN_BINS"]
 
-#: Quantities a design can aim at.
-TARGETS = ("m50", "curve")
+#: Quantities a design can aim at: the m50, the whole transition, or f at chosen magnitudes.
+TARGETS = ("m50", "curve", "f")
 
 #: Share of every adaptive batch drawn uniformly over the whole magnitude range.
 DEFAULT_UNIFORM_SHARE = 0.15
@@ -128,7 +130,35 @@ def uniform_design(lo: float, hi: float, nbins: int = DESIGN_BINS) -> MagnitudeD
     return MagnitudeDesign(np.linspace(lo, hi, int(nbins) + 1), np.full(int(nbins), 1.0 / int(nbins)))
 
 
-def variance_reduction(grid, curves, *, target: str = "m50", m50=None, window=(0.05, 0.95)) -> np.ndarray:
+def curves_at(grid, curves, magnitudes) -> np.ndarray:
+    """Draws of the curve at ``magnitudes``, linearly interpolated between the ``grid`` points.
+
+    Parameters
+    ----------
+    grid : array (G,)
+        Increasing magnitudes.
+    curves : array (S, G)
+        Draws of the curve on ``grid``.
+    magnitudes : array (J,)
+        Magnitudes inside ``[grid[0], grid[-1]]`` (exact where they are grid points).
+
+    Returns
+    -------
+    ndarray (S, J)
+    """
+    grid = np.asarray(grid, dtype=np.float64)
+    f = np.asarray(curves, dtype=np.float64)
+    m = np.atleast_1d(np.asarray(magnitudes, dtype=np.float64))
+    if m.size == 0 or not np.isfinite(m).all() or m.min() < grid[0] or m.max() > grid[-1]:
+        raise InputError(f"magnitudes {m.tolist()} must be finite and inside the curve's range "
+                         f"[{grid[0]:.2f}, {grid[-1]:.2f}].")
+    i = np.clip(np.searchsorted(grid, m, side="right") - 1, 0, grid.size - 2)
+    w = (m - grid[i]) / (grid[i + 1] - grid[i])
+    return f[:, i] * (1.0 - w) + f[:, i + 1] * w
+
+
+def variance_reduction(grid, curves, *, target: str = "m50", m50=None, magnitudes=None,
+                       window=(0.05, 0.95)) -> np.ndarray:
     """Expected reduction of the target's posterior variance per injection at each ``grid`` magnitude.
 
     Parameters
@@ -137,9 +167,11 @@ def variance_reduction(grid, curves, *, target: str = "m50", m50=None, window=(0
         Magnitudes.
     curves : array (S, G)
         Posterior draws of the image-average completeness on ``grid``.
-    target : {"m50", "curve"}
+    target : {"m50", "curve", "f"}
     m50 : array (S,), optional
         The draws' m50 (needed for ``target="m50"``; NaN draws are dropped).
+    magnitudes : array (J,), optional
+        For ``"f"``: the magnitudes whose ``Var f`` reductions are summed.
     window : (float, float)
         For ``"curve"``: the posterior-median curve levels that bound the
         magnitudes whose variance is summed.
@@ -167,6 +199,12 @@ def variance_reduction(grid, curves, *, target: str = "m50", m50=None, window=(0
             raise InputError("fewer than two draws have a defined m50: the design cannot aim at it.")
         cq = (q[ok] - q[ok].mean()) @ (f[ok] - f[ok].mean(axis=0)) / (ok.sum() - 1)
         num = cq ** 2
+    elif target == "f":
+        if magnitudes is None or np.size(magnitudes) == 0:
+            raise InputError("target 'f' needs the magnitudes at which f must be precise.")
+        fj = curves_at(grid, f, magnitudes)
+        cov = dev.T @ (fj - fj.mean(axis=0)) / (f.shape[0] - 1)  # (G, J): Cov(f(m), f(m_j))
+        num = np.sum(cov ** 2, axis=1)
     else:
         med = np.median(f, axis=0)
         sel = (med >= window[0]) & (med <= window[1])
@@ -179,7 +217,7 @@ def variance_reduction(grid, curves, *, target: str = "m50", m50=None, window=(0
     return np.nan_to_num(gain, nan=0.0, posinf=0.0)
 
 
-def design_from_draws(grid, curves, lo: float, hi: float, *, target: str = "m50", m50=None,
+def design_from_draws(grid, curves, lo: float, hi: float, *, target: str = "m50", m50=None, magnitudes=None,
                       uniform_share: float = DEFAULT_UNIFORM_SHARE, nbins: int = DESIGN_BINS) -> MagnitudeDesign:
     """The next batch's design from posterior draws of the image-average curve.
 
@@ -192,7 +230,7 @@ def design_from_draws(grid, curves, lo: float, hi: float, *, target: str = "m50"
         raise InputError(f"uniform_share = {uniform_share} must lie in [0, 1].")
     grid = np.asarray(grid, dtype=np.float64)
     base = uniform_design(lo, hi, nbins)
-    gain = variance_reduction(grid, curves, target=target, m50=m50)
+    gain = variance_reduction(grid, curves, target=target, m50=m50, magnitudes=magnitudes)
     # the gain per design bin: linear interpolation of the gain at each bin's centre and edges
     edges = base.edges
     fine = np.linspace(lo, hi, 4 * nbins + 1)

@@ -274,12 +274,17 @@ def format_info(info: dict) -> str:
                          + (f"{q[1:]}% purity at {_q(p[q])}" if q else "no purity crossing in the range"))
     ad = info.get("adaptive")
     if ad:
-        lines.append(f"adaptive injection: target m50 half-width {ad.get('precision')} mag")
+        at_f = ad.get("target") == "f"
+        mags = ", ".join(f"{m:.2f}" for m in ad.get("magnitudes") or [])
+        lines.append(f"adaptive injection: target sd of f {ad.get('precision')} at {mags} mag" if at_f
+                     else f"adaptive injection: target m50 half-width {ad.get('precision')} mag")
         for kind, a in (ad.get("kinds") or {}).items():
             last = (a.get("batches") or [{}])[-1]
+            reached = (f"sd of f {', '.join(_num(v) for v in last.get('f_sd') or [])}" if at_f
+                       else f"half-width {_num(last.get('halfwidth'))}")
             lines.append(f"  {kind}: {'reached' if a.get('reached') else 'NOT reached'} in {len(a.get('batches') or [])} "
                          f"batches, {a.get('realizations')} realizations, {last.get('injections')} injections "
-                         f"(half-width {_num(last.get('halfwidth'))})")
+                         f"({reached})")
     if info.get("depth_5sigma") is not None:
         lines.append(f"5-sigma point-source depth: {info['depth_5sigma']:.2f} mag")
     if info["warnings"]:

@@ -657,14 +657,23 @@ def _adaptive_injection(run: RunDirectory, ctx, config: RunConfig, compute: "Com
     sims = run.file("sims")
     designs = run.file("designs")
     designs.mkdir(exist_ok=True)
+    at_f = ad.target == "f"
+    mags_f = tuple(float(m) for m in ad.magnitudes)
+    if at_f and not all(lo <= m <= hi for m in mags_f):
+        raise ConfigError(f"adaptive.magnitudes {list(mags_f)} (--precision-at) must lie inside the injected "
+                          f"range [{lo:.2f}, {hi:.2f}] mag: no injection can make f precise outside it. Choose "
+                          "magnitudes inside it or widen injection.mag_range.")
     model = config.fit.model if config.fit.model != "none" else "auto"
     state = {}
     for kind in config.injection.kinds:
         state[kind] = {"n": 0, "design": uniform_design(lo, hi), "batches": [], "done": False, "reached": False,
-                       "reason": "", "outcomes": [], "fit": package_fitter(image_shape=noise.shape, noise=noise, mask=mask, lo=lo,
-                                                           hi=hi, seed=int_seed_for(config.seed, "adaptive", kind),
-                                                           model=model, kind=kind, mag_bin=config.ratios.mag_bin)}
-    log(f"adaptive: batches until the 68% half-width of m50 is <= {ad.precision} mag per kind (pilot "
+                       "reason": "", "outcomes": [],
+                       "fit": package_fitter(image_shape=noise.shape, noise=noise, mask=mask, lo=lo, hi=hi,
+                                             seed=int_seed_for(config.seed, "adaptive", kind), model=model, kind=kind,
+                                             mag_bin=config.ratios.mag_bin, magnitudes=mags_f)}
+    goal = (f"the posterior sd of f at {', '.join(f'{m:.2f}' for m in mags_f)} mag is <= {ad.precision}" if at_f
+            else f"the 68% half-width of m50 is <= {ad.precision} mag")
+    log(f"adaptive: batches until {goal} per kind (pilot "
         f"{ad.pilot_nsims} uniform realizations, then +{ad.growth:.0%} per batch, {ad.uniform_share:.0%} uniform, "
         f"at most {ad.max_nsims} realizations)")
     said = set()  # each distinct worker warning is logged once per run, as in the uniform injection
@@ -727,14 +736,18 @@ def _adaptive_injection(run: RunDirectory, ctx, config: RunConfig, compute: "Com
                                          if math.isfinite(view.m50_median) else None),
                    "m50": view.m50_median if math.isfinite(view.m50_median) else None,
                    "halfwidth": half if math.isfinite(half) else None}
+            if at_f:
+                rec["f"] = [float(v) for v in view.f_median(mags_f)]
+                rec["f_sd"] = [float(v) for v in view.f_sd(mags_f)]
             st["batches"].append(rec)
             log(f"adaptive: {kind} batch {k} ({rec['design']} design, {end - start} realizations): {end} in all, "
                 f"{rec['injections']} injections, m50 "
                 + ("undefined" if rec["m50"] is None else f"{rec['m50']:.3f} +- {half:.4f}")
+                + ("; f " + ", ".join(f"{v:.3f} +- {e:.4f}" for v, e in zip(rec["f"], rec["f_sd"])) if at_f else "")
                 + f" (target {ad.precision}; {entry['name']})")
             reached, reason, nxt = after_batch(view, lo, hi, precision=ad.precision, at_cap=end >= ad.max_nsims,
                                                spent=f"{end} realizations, {rec['injections']} injections",
-                                               target=ad.target, uniform_share=ad.uniform_share)
+                                               target=ad.target, uniform_share=ad.uniform_share, magnitudes=mags_f)
             if nxt is None:
                 st.update(done=True, reached=reached,
                           reason=reason if reached else reason + "; raise --max-nsims or relax --precision")
@@ -745,6 +758,7 @@ def _adaptive_injection(run: RunDirectory, ctx, config: RunConfig, compute: "Com
                     f"{st['reason']}")
         k += 1
     summary = {"precision": ad.precision, "target": ad.target, "uniform_share": ad.uniform_share,
+               **({"magnitudes": list(mags_f)} if at_f else {}),
                "kinds": {kind: {"reached": st["reached"], "reason": st["reason"], "realizations": st["n"],
                                 "batches": st["batches"]} for kind, st in state.items()}}
     return {kind: st["n"] for kind, st in state.items()}, summary

@@ -135,25 +135,86 @@ def test_info_tells_how_the_adaptive_injection_ended(adaptive_run, capsys):
     assert f"point: {'reached' if ad['reached'] else 'NOT reached'} in {len(ad['batches'])} batches" in text
 
 
-def test_the_workers_warnings_reach_the_log_once_each(tile, tmp_path, monkeypatch):
+
+def _noisy(real):
+    """A realization that warns: alike in every realization (logged once), and of its own in designed batches."""
     import warnings
 
-    import comest_bayes.recovery as recovery
-
-    real = recovery._run_realization
-
     def noisy(task):
-        # the pilot's realizations warn alike (logged once); the designed batch warns of its own realization
         warnings.warn("stamp of injection 7 clipped at the image edge", UserWarning)
         if task.design is not None:
             warnings.warn(f"designed realization {task.index} drew no magnitude above the range", UserWarning)
         return real(task)
 
-    monkeypatch.setattr(recovery, "_run_realization", noisy)
+    return noisy
+
+
+@pytest.fixture(scope="module")
+def f_run(tile, tmp_path_factory):
+    """An adaptive run aimed at f at 23.5 and 24.0 mag (a target it cannot reach in 3 realizations), whose
+    realizations warn."""
+    import comest_bayes.recovery as recovery
+
+    out = tmp_path_factory.mktemp("adaptive_f") / "run"
     lines = []
-    run_pipeline(_options(tile), _config("adaptive.precision=0.001", "adaptive.max_nsims=3", "adaptive.pilot_nsims=2"),
-                 tmp_path / "run", log=lines.append, compute=ComputeOptions(executor="serial", progress=False))
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setattr(recovery, "_run_realization", _noisy(recovery._run_realization))
+        run_pipeline(_options(tile), _config("adaptive.precision=0.001", "adaptive.max_nsims=3", "adaptive.target=f",
+                                             "adaptive.magnitudes=[23.5, 24.0]"),
+                     out, log=lines.append, compute=ComputeOptions(executor="serial", progress=False))
+    return out, lines
+
+
+def test_the_workers_warnings_reach_the_log_once_each(f_run):
+    _, lines = f_run
     said = [s for s in lines if s.startswith("warning: realization point")]
     assert said == ["warning: realization point #0 (adaptive batch 0): stamp of injection 7 clipped at the image edge",
                     "warning: realization point #2 (adaptive batch 1): designed realization 2 drew no magnitude "
                     "above the range"], said
+
+
+def test_the_f_target_is_designed_recorded_reported_and_shown(f_run, capsys):
+    from comest_bayes.cli import main
+    from comest_bayes.report import write_report
+
+    out, lines = f_run
+    ad = json.loads((out / "summary.json").read_text())["adaptive"]
+    assert ad["target"] == "f" and ad["magnitudes"] == [23.5, 24.0] and ad["precision"] == 0.001
+    point = ad["kinds"]["point"]
+    assert [b["design"] for b in point["batches"]] == ["uniform", "f"]
+    assert json.loads((out / "designs" / "point_batch1.json").read_text())["target"] == "f"
+    for b in point["batches"]:
+        # f at 23.5 mag (above m50 ~ 23.95) is higher than at 24.0, both are probabilities, and their sds are
+        # positive and above the unreachable target
+        assert len(b["f"]) == len(b["f_sd"]) == 2 and 1 > b["f"][0] > b["f"][1] > 0
+        assert all(0.001 < v < 0.5 for v in b["f_sd"])
+    assert not point["reached"] and "sd of f at 23.50, 24.00" in point["reason"]
+    assert any("until the posterior sd of f at 23.50, 24.00 mag is <= 0.001" in s for s in lines)
+    assert main(["info", str(out)]) == 0
+    text = capsys.readouterr().out
+    assert "adaptive injection: target sd of f 0.001 at 23.50, 24.00 mag" in text
+    last = point["batches"][-1]["f_sd"]
+    assert "point: NOT reached in 2 batches, 3 realizations" in text and f"(sd of f {last[0]:.4f}, {last[1]:.4f})" in text
+    html = write_report(out).read_text()
+    assert "largest posterior sd of the image-average f at 23.50, 24.00 mag" in html
+    assert "sd of f at 23.50, 24.00" in html and (out / "figures" / "adaptive_precision.png").is_file()
+
+
+def test_f_target_magnitudes_outside_the_injected_range_are_refused_before_any_injection(tile, tmp_path):
+    from comest_bayes.errors import ConfigError
+
+    out = tmp_path / "run"
+    with pytest.raises(ConfigError, match=r"adaptive.magnitudes \[30.0\] \(--precision-at\) must lie inside"):
+        run_pipeline(_options(tile), _config("adaptive.precision=0.01", "adaptive.target=f", "adaptive.magnitudes=30"),
+                     out, log=lambda s: None, compute=ComputeOptions(executor="serial", progress=False))
+    sims = out / "sims"
+    assert not sims.exists() or not any(p.is_file() for p in sims.rglob("*"))
+
+
+def test_precision_at_on_the_command_line_sets_the_f_target():
+    from comest_bayes import cli
+
+    args = cli.build_parser().parse_args(["run", "image.fits", "--out", "o", "--precision", "0.02",
+                                          "--precision-at", "23.5,24"])
+    ad = cli._config_from_args(args).adaptive
+    assert (ad.target, ad.magnitudes, ad.precision) == ("f", (23.5, 24.0), 0.02)
