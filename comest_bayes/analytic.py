@@ -52,6 +52,13 @@ derivation, its assumptions and the measured size of each correction are in
   over the filtered-noise field (seeded; the same noise draws for every
   magnitude, so the curve is smooth and monotone).
 
+* Real images often carry *correlated* pixel noise (resampled coadds, drizzled
+  mosaics).  The peak-pixel m50 does not depend on it (the threshold is
+  relative to the per-pixel sigma), but the neighbour and minarea terms do:
+  :func:`noise_autocorrelation` measures the noise's normalised
+  autocorrelation on an image, and ``noise_acf=`` makes the Monte Carlo draw
+  noise with it (:func:`correlated_noise_kernel`).
+
 Magnitudes follow the package's convention ``F = 10**(-0.4 (m - ZP))``.
 """
 
@@ -81,6 +88,8 @@ __all__ = [
     "peak_probability",
     "detection_probability",
     "detection_probability_mc",
+    "noise_autocorrelation",
+    "correlated_noise_kernel",
     "predicted_m50",
     "predict",
 ]
@@ -532,10 +541,97 @@ def detection_probability(mag, *, zeropoint: float, sigma: float, fwhm_pix: floa
     return special.ndtr(nu - t / kn).mean(axis=-1)
 
 
+def noise_autocorrelation(residual, good=None, *, max_lag: int = 3) -> np.ndarray:
+    """Normalised autocorrelation of an image's pixel noise, for lags up to ``max_lag`` pixels.
+
+    Parameters
+    ----------
+    residual : ndarray, shape (ny, nx)
+        Background-subtracted image, image units.
+    good : ndarray of bool, shape (ny, nx), optional
+        Pixels that hold only noise (e.g. unmasked, outside every detection's
+        segment); default every finite pixel.
+    max_lag : int
+        Largest lag along each axis, pixels.
+
+    Returns
+    -------
+    ndarray, shape (2 max_lag + 1, 2 max_lag + 1)
+        ``acf[max_lag + dy, max_lag + dx]`` = mean of ``r(p) r(p + (dy, dx))``
+        over pairs of good pixels, divided by the mean of ``r(p)^2``; 1 at
+        the centre, symmetric through it.  White noise gives 0 elsewhere
+        (within ``1 / sqrt(npairs)``).
+    """
+    r = np.asarray(residual, dtype=float)
+    if r.ndim != 2:
+        raise InputError(f"residual must be a 2-D image; got shape {r.shape}.")
+    g = np.isfinite(r) if good is None else (np.asarray(good, dtype=bool) & np.isfinite(r))
+    if g.shape != r.shape:
+        raise InputError(f"good has shape {g.shape} but the residual {r.shape}.")
+    L = int(max_lag)
+    if L < 1 or 2 * L + 1 > min(r.shape):
+        raise InputError(f"max_lag = {max_lag!r} must be >= 1 and leave the image wider than 2 max_lag + 1.")
+    if g.sum() < 100:
+        raise InputError(f"only {int(g.sum())} noise pixels: too few to measure the noise correlation.")
+    r = np.where(g, r, 0.0)
+    gf = g.astype(float)
+    ny, nx = r.shape
+    var = float(np.sum(r * r) / gf.sum())
+    acf = np.zeros((2 * L + 1, 2 * L + 1))
+    for dy in range(0, L + 1):
+        for dx in range(-L, L + 1):
+            if dy == 0 and dx < 0:
+                continue
+            ys = slice(dy, ny), slice(0, ny - dy)
+            xs = (slice(dx, nx), slice(0, nx - dx)) if dx >= 0 else (slice(0, nx + dx), slice(-dx, nx))
+            a, b = r[ys[0], xs[0]], r[ys[1], xs[1]]
+            n = float(np.sum(gf[ys[0], xs[0]] * gf[ys[1], xs[1]]))
+            value = float(np.sum(a * b) / n / var) if n > 0 else 0.0
+            acf[L + dy, L + dx] = acf[L - dy, L - dx] = value
+    acf[L, L] = 1.0
+    return acf
+
+
+def correlated_noise_kernel(acf) -> np.ndarray:
+    """A kernel ``c`` whose white-noise convolution has the autocorrelation ``acf`` (unit variance).
+
+    ``c`` is the real, centred inverse Fourier transform of the square root of
+    the power spectrum of ``acf`` (negative powers, from measurement noise,
+    set to 0), on a grid twice the size of ``acf``, normalised to
+    ``sum(c^2) = 1``; white noise convolved with it has the autocorrelation
+    ``acf`` up to the lags ``acf`` covers.
+
+    Parameters
+    ----------
+    acf : ndarray, shape (2 L + 1, 2 L + 1)
+        Normalised autocorrelation (1 at the centre), e.g. from
+        :func:`noise_autocorrelation`.
+
+    Returns
+    -------
+    ndarray, shape (4 L + 1, 4 L + 1)
+    """
+    a = np.asarray(acf, dtype=float)
+    if a.ndim != 2 or a.shape[0] != a.shape[1] or a.shape[0] % 2 != 1:
+        raise InputError(f"acf must be a square array of odd size; got shape {a.shape}.")
+    L = a.shape[0] // 2
+    n = 4 * L + 1
+    grid = np.zeros((n, n))
+    grid[L:L + 2 * L + 1, L:L + 2 * L + 1] = a
+    power = np.fft.fft2(np.fft.ifftshift(grid)).real
+    root = np.sqrt(np.clip(power, 0.0, None))
+    c = np.fft.fftshift(np.fft.ifft2(root).real)
+    norm = math.sqrt(float(np.sum(c * c)))
+    if not norm > 0:
+        raise InputError("acf has no positive power: it is not an autocorrelation.")
+    return c / norm
+
+
 def detection_probability_mc(mag, *, zeropoint: float, sigma: float, fwhm_pix: float, kernel, thresh: float,
                              minarea: int = 1, seed: int, nsamples: int = 4000, n_sub: int = 4,
                              radius: float = 1.5, patch: int = 4, pixel_integrated: bool = False,
-                             psf: str = "gaussian", moffat_beta: float = DEFAULT_MOFFAT_BETA) -> np.ndarray:
+                             psf: str = "gaussian", moffat_beta: float = DEFAULT_MOFFAT_BETA,
+                             noise_acf=None) -> np.ndarray:
     """Detection probability with every pixel and DETECT_MINAREA, by Monte Carlo over the noise.
 
     The event: on the filtered image (source plus filtered white noise), a
@@ -566,6 +662,10 @@ def detection_probability_mc(mag, *, zeropoint: float, sigma: float, fwhm_pix: f
         "at the source" (a detection there is matched to the injection).
     patch : int, default 4
         Half-size of the patch, pixels.
+    noise_acf : ndarray, optional
+        Normalised autocorrelation of the pixel noise
+        (:func:`noise_autocorrelation`); default white noise.  The per-pixel
+        standard deviation stays ``sigma``, and so does the threshold.
 
     Returns
     -------
@@ -587,8 +687,15 @@ def detection_probability_mc(mag, *, zeropoint: float, sigma: float, fwhm_pix: f
     # white noise on a patch padded by the kernel half-width, convolved: exact filtered noise on the patch
     ky, kx = k.shape[0] // 2, k.shape[1] // 2
     rng = rng_for(seed, "analytic-noise")
-    white = rng.standard_normal((int(nsamples), 2 * (h + ky) + 1, 2 * (h + kx) + 1))
-    noise = np.stack([signal.convolve2d(w, k, mode="valid") for w in white])  # (n, 2h+1, 2h+1), unit sigma
+    if noise_acf is None:
+        white = rng.standard_normal((int(nsamples), 2 * (h + ky) + 1, 2 * (h + kx) + 1))
+        noise = np.stack([signal.convolve2d(w, k, mode="valid") for w in white])  # (n, 2h+1, 2h+1), unit sigma
+    else:  # correlated pixel noise of unit sigma, then the detection filter
+        c = correlated_noise_kernel(noise_acf)
+        cy = c.shape[0] // 2
+        white = rng.standard_normal((int(nsamples), 2 * (h + ky + cy) + 1, 2 * (h + kx + cy) + 1))
+        noise = np.stack([signal.convolve2d(signal.convolve2d(w, c, mode="valid"), k, mode="valid")
+                          for w in white])
     dxs, dys = _offset_grid(int(n_sub), _is_symmetric(kernel))
     r = np.arange(-h, h + 1, dtype=np.float64)
     flux = np.atleast_1d(10.0 ** (-0.4 * (m - zeropoint))).ravel()
@@ -684,7 +791,7 @@ class AnalyticPrediction:
 def predict(*, zeropoint: float, sigma: float, fwhm_pix: float, kernel, thresh: float, minarea: int = 1,
             mc: bool = True, seed: int = 0, nsamples: int = 4000, radius: float = 1.5,
             pixel_integrated: bool = False, psf: str = "gaussian",
-            moffat_beta: float = DEFAULT_MOFFAT_BETA) -> AnalyticPrediction:
+            moffat_beta: float = DEFAULT_MOFFAT_BETA, noise_acf=None) -> AnalyticPrediction:
     """The three m50 predictions of a point-source set-up (centred, peak-averaged, Monte Carlo).
 
     Parameters are those of :func:`detection_probability_mc`; ``mc=False``
@@ -711,7 +818,7 @@ def predict(*, zeropoint: float, sigma: float, fwhm_pix: float, kernel, thresh: 
     m_mc = None
     if mc:
         m_mc = predicted_m50(lambda x: detection_probability_mc(x, minarea=minarea, seed=seed, nsamples=nsamples,
-                                                                radius=radius, **common),
+                                                                radius=radius, noise_acf=noise_acf, **common),
                              lo=m_c - 3.0, hi=m_c + 3.0, xtol=1e-3)
     nu_t = t / kn
     return AnalyticPrediction(m50_centred=float(m_c), m50_peak=float(m_p), m50_mc=m_mc,

@@ -45,6 +45,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import NamedTuple
 
 import numpy as np
 from astropy.stats import poisson_conf_interval
@@ -54,7 +55,7 @@ from scipy.special import ndtri
 from .errors import InputError
 from .ratios import first_crossing
 
-__all__ = ["noise_equivalent_area", "point_source_depth_nea", "limiting_magnitude", "point_source_depth", "HistogramCompleteness", "histogram_completeness"]
+__all__ = ["DepthOffset", "m50_depth_offset", "noise_equivalent_area", "point_source_depth_nea", "limiting_magnitude", "point_source_depth", "HistogramCompleteness", "histogram_completeness"]
 
 _LN10 = math.log(10.0)
 _FWHM_PER_SIGMA = 2.0 * math.sqrt(2.0 * math.log(2.0))
@@ -175,6 +176,88 @@ def point_source_depth_nea(sigma, zeropoint: float, nea: float, nsigma: float = 
     ``sigma`` a scalar per-pixel noise.
     """
     return float(zeropoint - 2.5 * np.log10(nsigma * float(sigma) * np.sqrt(_positive("nea", nea))))
+
+
+class DepthOffset(NamedTuple):
+    """How far the point-source m50 of a detection set-up lies from the N-sigma optimal depth (mag).
+
+    All terms are magnitudes; positive means m50 is *brighter* than the depth.
+    They do not depend on the noise level or the zero point (both move m50
+    and the depth together).  See ``docs/depth.md``.
+
+    Attributes
+    ----------
+    total : float
+        ``m_depth - m50``: the sum of the three terms below.
+    filter_threshold : float
+        ``m_depth - m50_centred``: a source centred on a pixel whose filtered
+        peak pixel sits exactly at the threshold, against the optimal depth.
+        ``2.5 log10(nsigma ||k|| / nu_t_opt)`` with the filter's efficiency
+        ``S(0) sqrt(NEA) / ||k||`` (:attr:`filter_efficiency`).
+    subpixel : float
+        ``m50_centred - m50_peak``: injections fall anywhere within a pixel,
+        and an off-centre source has a lower filtered peak.
+    minarea : float
+        ``m50_peak - m50_mc``: the Monte Carlo with every pixel near the
+        source and ``DETECT_MINAREA`` (positive: the area cut costs depth;
+        negative with ``minarea = 1``, where neighbours add chances).
+    filter_efficiency : float
+        Signal-to-noise of the filtered peak pixel over that of optimal (PSF-
+        weighted) photometry, ``S(0) sqrt(NEA) / ||k||`` (1 for the matched
+        filter, ~0.9 for the 3x3 default kernel at FWHM 3 px).
+    nea_pix : float
+        Noise-equivalent area of the PSF, pixels.
+    """
+
+    total: float
+    filter_threshold: float
+    subpixel: float
+    minarea: float
+    filter_efficiency: float
+    nea_pix: float
+
+
+def m50_depth_offset(*, fwhm_pix: float, kernel, thresh: float, minarea: int, nsigma: float = 5.0,
+                     psf: str = "moffat", moffat_beta: float = 3.0, pixel_integrated: bool = False,
+                     noise_acf=None, seed: int = 0, nsamples: int = 4000) -> DepthOffset:
+    """Predicted ``m_depth - m50`` of point sources on white noise, split into its causes.
+
+    ``m_depth`` is the ``nsigma`` optimal-photometry point-source depth that a
+    run reports (``summary.json`` ``depth.point_source_5sigma``: the
+    noise-equivalent area of the injected PSF, :func:`point_source_depth_nea`);
+    m50 is where the detector (filter ``kernel``, ``thresh``, ``minarea``)
+    finds half the point sources, predicted by
+    :func:`comest_bayes.analytic.predict`.  Both scale with the noise and the
+    zero point in the same way, so their difference depends only on the PSF
+    and the detection settings.
+
+    Parameters
+    ----------
+    fwhm_pix, kernel, thresh, minarea, psf, moffat_beta, pixel_integrated, noise_acf, seed, nsamples
+        As for :func:`comest_bayes.analytic.predict` (``psf="moffat"``,
+        beta 3 by default: what a run injects without fitted stars).
+    nsigma : float
+        Signal-to-noise of the depth (default 5).
+
+    Returns
+    -------
+    DepthOffset
+    """
+    from .analytic import kernel_norm, predict, psf_image
+
+    nsigma = _positive("nsigma", nsigma)
+    fwhm = _positive("fwhm_pix", fwhm_pix)
+    beta = float(moffat_beta)
+    zp, sigma = 30.0, 1.0  # any: the offset does not depend on them
+    pred = predict(zeropoint=zp, sigma=sigma, fwhm_pix=fwhm, kernel=kernel, thresh=thresh, minarea=minarea,
+                   seed=seed, nsamples=nsamples, pixel_integrated=pixel_integrated, psf=psf, moffat_beta=beta,
+                   noise_acf=noise_acf)
+    nea = noise_equivalent_area(psf_image(fwhm, pixel_integrated=pixel_integrated, psf=psf, moffat_beta=beta))
+    m_depth = point_source_depth_nea(sigma, zp, nea, nsigma)
+    efficiency = pred.peak_centred * math.sqrt(nea) / kernel_norm(kernel)
+    return DepthOffset(total=float(m_depth - pred.m50_mc), filter_threshold=float(m_depth - pred.m50_centred),
+                       subpixel=float(pred.m50_centred - pred.m50_peak), minarea=float(pred.m50_peak - pred.m50_mc),
+                       filter_efficiency=float(efficiency), nea_pix=float(nea))
 
 
 @dataclass(frozen=True)
