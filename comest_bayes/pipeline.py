@@ -604,14 +604,16 @@ def _point_size_check(image: ImageData, det: DetectionResult, matched, log, star
         rows = select_stars(det.catalog, shape=image.shape, saturation_flagged=image.saturation is not None,
                             snr_min=SIZE_CHECK_SNR).index
     stars = np.asarray(det.catalog["flux_radius"], dtype=float)[rows]
+    star_snr = np.asarray(det.catalog["snr_auto"], dtype=float)[rows]
     if len(matched):
         ok = (np.asarray(matched["det_snr_auto"], dtype=float) >= SIZE_CHECK_SNR) \
             & ((np.asarray(matched["det_flags"], dtype=np.int64) & BAD_FLAGS) == 0) \
             & np.asarray(matched["usable"], dtype=bool)
         injected = np.asarray(matched["det_flux_radius"], dtype=float)[ok]
+        injected_snr = np.asarray(matched["det_snr_auto"], dtype=float)[ok]
     else:
-        injected = np.zeros(0)
-    check = point_size_check(stars, injected)
+        injected = injected_snr = np.zeros(0)
+    check = point_size_check(stars, injected, star_snr=star_snr, injected_snr=injected_snr)
     check["snr_min"] = SIZE_CHECK_SNR
     if check["status"] == "not enough":
         log(f"psf check: point: too few to compare the sizes of injected point sources and stars "
@@ -619,9 +621,14 @@ def _point_size_check(image: ImageData, det: DetectionResult, matched, log, star
         return check
     said = (f"median flux_radius {check['injected']:.3f} px of {check['ninjected']} detected point-source "
             f"injections against {check['stars']:.3f} px of {check['nstars']} stars (ratio {check['ratio']:.3f} "
-            f"+- {check['ratio_err']:.3f})")
+            f"+- {check['ratio_err']:.3f}")
+    same = check.get("matched")
+    said += (f"; at the same SNR {same['ratio']:.3f} +- {same['ratio_err']:.3f})" if same else ")")
     if check["status"] == "agree":
         log(f"psf check: point: {said}: they agree within {100 * check['tolerance']:.0f}%")
+    elif check["status"] == "uncertain":
+        log(f"psf check: point: {said}: too few or too scattered sizes to tell whether they agree within "
+            f"{100 * check['tolerance']:.0f}%")
     else:
         log(f"warning: psf check: point: {said}: the injected point sources do not look like the image's stars; "
             f"the completeness of point sources may be biased (see the 'psf' entry of run.json)")
