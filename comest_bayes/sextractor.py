@@ -2,7 +2,7 @@
 
 This is the second detection backend (``detection.backend = "sextractor"``).
 :func:`detect_sextractor` takes the same arguments and returns the same
-:class:`~comest_bayes.detection.DetectionResult` as
+:class:`~comest_bayes.detection_base.DetectionResult` as
 :func:`comest_bayes.detection.detect_array`: a catalog with exactly the
 columns of :data:`comest_bayes.catalog.DETECTION_COLUMNS` (0-based pixel
 coordinates), the segmentation map, the background and RMS maps and the
@@ -51,7 +51,7 @@ WRITE_XML                  Y: the XML report gives the version and the
                            global background and RMS
 =========================  ====================================================
 
-Noise modes (:func:`comest_bayes.detection.noise_map`):
+Noise modes (:func:`comest_bayes.detection_base.noise_map`):
 
 * ``"global"`` -> ``WEIGHT_TYPE NONE``: one RMS for the whole image.
 * ``"background"`` (and ``"auto"`` without a weight map) ->
@@ -64,7 +64,7 @@ Noise modes (:func:`comest_bayes.detection.noise_map`):
   for those (its XML ``Weight_Scaling`` reads 0 in 2.25), so the rescaling
   is done here, exactly as the SEP backend does it: a first, detection-free
   SExtractor pass measures the background-RMS map; the RMS map handed to the
-  second pass is :func:`comest_bayes.detection.noise_map` of that map and
+  second pass is :func:`comest_bayes.detection_base.noise_map` of that map and
   ``weight_noise`` (median-ratio rescaling), with 1e14 (above WEIGHT_THRESH
   1e12) on masked pixels.  The returned noise map is exactly that map.
 
@@ -139,7 +139,7 @@ from astropy.io import fits
 
 from .catalog import FLAG_MASKED, derived_columns, make_catalog
 from .config import DetectionConfig
-from .detection import DetectionResult, filter_kernel, noise_map
+from .detection_base import DetectionResult, filter_kernel, noise_map
 from .errors import BackendUnavailableError, ComestError, ConfigError, DetectionOverflowError, InputError
 
 __all__ = ["SExtractorError", "ENV_VAR", "find_sextractor", "sextractor_version", "sextractor_config",
@@ -224,7 +224,7 @@ def sextractor_version(binary: str | None = None) -> str:
 def sextractor_noise_mode(mode: str, has_weight: bool) -> str:
     """Resolve ``detection.noise`` to ``"global"``, ``"background"`` or ``"weight"``.
 
-    Same rules as :func:`comest_bayes.detection.noise_map`: ``auto`` is
+    Same rules as :func:`comest_bayes.detection_base.noise_map`: ``auto`` is
     ``weight`` when a weight map is given, else ``background``.
     """
     if mode == "auto":
