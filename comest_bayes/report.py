@@ -44,7 +44,7 @@ from .plots import figure_png, save_figure
 from .plots import rundata as RD
 from .rundir import atomic_path
 
-__all__ = ["write_report", "ReportFigure"]
+__all__ = ["write_report", "ReportFigure", "lf_figures"]
 
 #: Default side of the Figure-3 cutouts, pixels.
 CUTOUT_SIZE = 400
@@ -571,19 +571,39 @@ def _model_sections(r: _Report) -> None:
                      "posterior file is absent).", make)
 
 
+def lf_figures(lf_dir) -> list:
+    """Figures of every number-count fit under ``lf_dir`` (a run's ``lf/`` folder, or one fit's folder).
+
+    Returns
+    -------
+    list of (title, matplotlib.figure.Figure)
+        Two per fit (counts, corner), in name order; empty when there is no fit.
+    """
+    from .lf import LFResult
+    from .plots.lf import corner_figure, counts_figure
+
+    root = Path(lf_dir)
+    if (root / "lf_posterior.npz").is_file():
+        dirs = [root]
+    elif root.is_dir():
+        dirs = sorted(p.parent for p in root.glob("*/lf_posterior.npz"))
+    else:
+        return []
+    out = []
+    for d in dirs:
+        res = LFResult.load(d)
+        out.append((f"Number counts {res.name}: catalog versus forward model", counts_figure(res)))
+        out.append((f"Number counts {res.name}: parameter posterior", corner_figure(res)))
+    return out
+
+
 def _lf_section(r: _Report) -> None:
     lf_dir = r.run.file("lf")
     if not lf_dir.is_dir():
         return
     r.h2("lf", "Luminosity function")
     try:
-        from .plots.lf import report_figures
-    except ImportError:
-        r.note("the run holds luminosity-function results (lf/), but this installation has no "
-               "comest_bayes.plots.lf to draw them.")
-        return
-    try:
-        figs = list(report_figures(lf_dir))
+        figs = list(lf_figures(lf_dir))
     except Exception as exc:
         r.p(f"the luminosity-function figures could not be made: {type(exc).__name__}: {exc}", "warn")
         r.failed.append(f"luminosity-function figures: {exc}")

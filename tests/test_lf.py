@@ -224,9 +224,9 @@ def test_run_lf_writes_results_figures_and_summary_entry(fake_run):
     np.testing.assert_array_equal(back.samples, res.samples)
     np.testing.assert_array_equal(back.transfer.density, res.transfer.density)
     assert back.parameter_summary() == res.parameter_summary()
-    from comest_bayes.plots.lf import report_figures
+    from comest_bayes.report import lf_figures
 
-    figs = report_figures(fake_run / "lf")
+    figs = lf_figures(fake_run / "lf")
     assert [t.split(":")[0] for t, _ in figs] == ["Number counts point_powerlaw_fixed"] * 2
 
 

@@ -7,8 +7,6 @@ import re
 import shutil
 import struct
 import subprocess
-import sys
-import types
 
 import numpy as np
 import pytest
@@ -266,15 +264,15 @@ def test_lf_section_calls_the_lf_figures_when_present(partial_run, monkeypatch):
     (out / "lf" / "r_band").mkdir(parents=True, exist_ok=True)
     calls = []
 
-    def report_figures(lf_dir):
+    def lf_figures(lf_dir):
         calls.append(lf_dir)
         ax = new_axes()
         ax.plot([20, 21, 22], [1, 10, 100])
         return [("r band: counts", ax.figure), ("r band: counts", ax.figure)]
 
-    module = types.ModuleType("comest_bayes.plots.lf")
-    module.report_figures = report_figures
-    monkeypatch.setitem(sys.modules, "comest_bayes.plots.lf", module)
+    import comest_bayes.report as report_module
+
+    monkeypatch.setattr(report_module, "lf_figures", lf_figures)
     target = out / "lf_report.html"
     try:
         html = write_report(out, target).read_text()

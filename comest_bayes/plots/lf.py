@@ -7,19 +7,18 @@ second panel, the fitted intrinsic counts ``phi(m)`` with the posterior-median
 footprint-average completeness on a twin axis.  :func:`corner_figure` is a
 small corner plot of the count parameters (histograms on the diagonal,
 68% / 95% highest-density contours of a 2-D histogram below it).
-:func:`report_figures` loads every fit under a run's ``lf/`` folder for the report.
+The report loads the fits under a run's ``lf/`` folder (:func:`comest_bayes.report.lf_figures`);
+this module only draws, so it never imports :mod:`comest_bayes.lf`.
 """
 
 from __future__ import annotations
-
-from pathlib import Path
 
 import numpy as np
 from matplotlib.figure import Figure
 
 from . import COLORS, new_figure
 
-__all__ = ["counts_figure", "corner_figure", "report_figures"]
+__all__ = ["counts_figure", "corner_figure"]
 
 
 def counts_figure(result, *, truth_phi=None) -> Figure:
@@ -131,28 +130,3 @@ def corner_figure(result, *, truths=None, bins: int = 30) -> Figure:
             elif j > 0:
                 ax.set_yticklabels([])
     return fig
-
-
-def report_figures(lf_dir) -> list[tuple[str, Figure]]:
-    """Figures of every fit under ``lf_dir`` (a run's ``lf/`` folder, or one fit's folder).
-
-    Returns
-    -------
-    list of (title, Figure)
-        Two per fit (counts, corner), in name order; empty when there is no fit.
-    """
-    from ..lf import LFResult
-
-    root = Path(lf_dir)
-    if (root / "lf_posterior.npz").is_file():
-        dirs = [root]
-    elif root.is_dir():
-        dirs = sorted(p.parent for p in root.glob("*/lf_posterior.npz"))
-    else:
-        return []
-    out = []
-    for d in dirs:
-        res = LFResult.load(d)
-        out.append((f"Number counts {res.name}: catalog versus forward model", counts_figure(res)))
-        out.append((f"Number counts {res.name}: parameter posterior", corner_figure(res)))
-    return out
