@@ -216,37 +216,20 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
-#: Command-line shortcuts: option attribute -> the configuration key it sets.
-_SHORTCUTS = {"backend": "detection.backend", "thresh": "detection.thresh", "minarea": "detection.minarea",
-              "kinds": "injection.kinds", "nsims": "injection.nsims", "density": "injection.density",
-              "model": "fit.model", "precision": "adaptive.precision", "max_nsims": "adaptive.max_nsims"}
-
-
 def _config_from_args(args):
-    from .config import load_config
+    """The run's configuration: one path for the command line and comest_bayes.run (api.config_from_options)."""
+    from .api import SHORTCUTS, config_from_options
 
-    overrides = list(args.overrides)
-    for option, key in _SHORTCUTS.items():
-        value = getattr(args, option)
-        if value is not None:
-            overrides.append(f"{key}={value}")
-    if args.no_bnb:
-        overrides.append("sourcefree.bnb=false")
-    if getattr(args, "precision_at", None):
-        overrides += ["adaptive.target=f", f"adaptive.magnitudes={args.precision_at}"]
-    return load_config(args.config, overrides, seed=args.seed)
+    return config_from_options(config=args.config, overrides=args.overrides, seed=args.seed, no_bnb=args.no_bnb,
+                               precision_at=getattr(args, "precision_at", None),
+                               **{option: getattr(args, option) for option in SHORTCUTS})
 
 
 def _compute_from_args(args):
-    from .executors import default_workers
-    from .pipeline import ComputeOptions
+    from .api import compute_from_options
 
-    workers = args.ncpu if args.ncpu is not None else default_workers()
-    if workers < 1:
-        raise ComestError(f"--ncpu {workers} must be at least 1.")
-    executor = "dask" if args.scheduler else args.executor
-    return ComputeOptions(executor=executor, workers=workers, scheduler=args.scheduler,
-                          progress=_progress_enabled(args))
+    return compute_from_options(ncpu=args.ncpu, executor=args.executor, scheduler=args.scheduler,
+                                progress=_progress_enabled(args))
 
 
 def _cmd_fit(args, log) -> int:

@@ -18,7 +18,7 @@ from pathlib import Path
 from .errors import InputFileError, RunDirectoryError
 from .rundir import LOCK_FILE, RUN_FILE, lock_holder
 
-__all__ = ["run_info", "format_info"]
+__all__ = ["run_info", "format_info", "model_facts"]
 
 SUMMARY_FILE = "summary.json"
 #: Stages in the order of the data flow (fits follow, one per kind and quantity).
@@ -45,7 +45,8 @@ def _interval(q: dict | None) -> dict | None:
     return out
 
 
-def _model(entry: dict | None) -> dict | None:
+def model_facts(entry: dict | None) -> dict | None:
+    """The facts of one model entry of ``summary.json`` (chosen model, candidates, m50/m80/m90, sampler, warnings)."""
     if not entry:
         return None
     if entry.get("skipped"):
@@ -138,8 +139,8 @@ def run_info(run_dir) -> dict:
     warnings_ = []
     kinds = {}
     for kind, entry in ((summary or {}).get("kinds") or {}).items():
-        model = _model(entry.get("model"))
-        purity = _model(entry.get("purity_model"))
+        model = model_facts(entry.get("model"))
+        purity = model_facts(entry.get("purity_model"))
         counts = entry.get("counts") or {}
         kinds[kind] = {"counts": counts, "m50_binned": entry.get("m50_binned"), "mag_range": entry.get("mag_range"),
                        "model": model, "purity_model": purity}

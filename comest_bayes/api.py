@@ -1,0 +1,478 @@
+"""The front door: run the whole measurement from Python, fit an outcome table, read a finished run.
+
+``comest_bayes.run(image, out=..., **options)`` does what ``comest-bayes run``
+does, with the command's options as keywords (``--pixel-scale`` is
+``pixel_scale=``, ``--set`` is ``overrides=``), and returns a :class:`Run`: a
+frozen view of the run directory with the per-kind results as typed values
+and accessors for the merged catalogs and the posteriors.
+``comest_bayes.fit_completeness`` fits the completeness model to an outcome
+table from any injection pipeline (``comest-bayes fit``).
+
+The shortcut options shared by the command line and :func:`run` are turned
+into a :class:`~comest_bayes.config.RunConfig` in one place,
+:func:`config_from_options`; the command line calls it too.  Nothing heavy
+is imported here at module level: JAX and GalSim load only when a run or a
+fit needs them.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import difflib
+import tempfile
+import warnings
+from dataclasses import dataclass
+from pathlib import Path
+from types import MappingProxyType
+from typing import Callable, Mapping
+
+from .errors import ConfigError, InputError, InputFileError
+
+__all__ = ["run", "fit_completeness", "Run", "KindSummary", "ModelSummary", "Interval", "CompletenessFit",
+           "config_from_options", "compute_from_options", "SHORTCUTS", "CATALOGS"]
+
+#: Shortcut options of ``comest-bayes run``/``demo`` and :func:`run` -> the configuration key each sets.
+SHORTCUTS = {"backend": "detection.backend", "thresh": "detection.thresh", "minarea": "detection.minarea",
+             "kinds": "injection.kinds", "nsims": "injection.nsims", "density": "injection.density",
+             "model": "fit.model", "precision": "adaptive.precision", "max_nsims": "adaptive.max_nsims"}
+#: Options of :func:`config_from_options` besides the shortcuts.
+CONFIG_OPTIONS = ("config", "overrides", "seed", "no_bnb", "precision_at")
+#: Options of :func:`compute_from_options` (where realizations run; results do not depend on them).
+COMPUTE_OPTIONS = ("ncpu", "executor", "scheduler")
+#: The merged catalogs a run writes per kind, ``catalogs/<kind>_<name>.fits``.
+CATALOGS = ("injected", "matched", "unmatched", "false", "outcomes")
+
+
+def _listed(value) -> str:
+    """A CLI-style value: lists and tuples become comma-separated text."""
+    if isinstance(value, (list, tuple)):
+        return ",".join(str(v) for v in value)
+    return str(value)
+
+
+def config_from_options(*, config=None, overrides=None, seed: int | None = None, no_bnb: bool = False,
+                        precision_at=None, **shortcuts):
+    """The :class:`~comest_bayes.config.RunConfig` of ``comest-bayes run`` for these options.
+
+    Parameters
+    ----------
+    config : str or Path, optional
+        TOML configuration file (``--config``).
+    overrides : list of str or mapping, optional
+        ``["detection.thresh=2", ...]`` or ``{"detection.thresh": 2}`` (``--set``);
+        the shortcuts below are applied after them.
+    seed : int, optional
+        Root seed of every random draw (default 0, or the file's).
+    no_bnb : bool
+        Do not make the bright-and-big image (``--no-bnb``).
+    precision_at : str or sequence of float, optional
+        Adaptive injection aimed at f at these magnitudes (``--precision-at``).
+    **shortcuts
+        Any of :data:`SHORTCUTS` (``thresh``, ``nsims``, ``kinds``, ``model``,
+        ...); None means not given.
+
+    Raises
+    ------
+    ConfigError
+        An unknown shortcut, or a value the configuration refuses.
+    """
+    from .config import load_config
+
+    unknown = sorted(set(shortcuts) - set(SHORTCUTS))
+    if unknown:
+        raise ConfigError(f"unknown configuration option(s) {unknown}; the shortcuts are {sorted(SHORTCUTS)} "
+                          f"(anything else: overrides=['section.key=value']).")
+    if overrides is None:
+        texts = []
+    elif isinstance(overrides, Mapping):
+        texts = [f"{key}={_listed(value)}" for key, value in overrides.items()]
+    elif isinstance(overrides, str):
+        texts = [overrides]
+    else:
+        texts = [str(t) for t in overrides]
+    for option, key in SHORTCUTS.items():
+        value = shortcuts.get(option)
+        if value is not None:
+            texts.append(f"{key}={_listed(value)}")
+    if no_bnb:
+        texts.append("sourcefree.bnb=false")
+    if precision_at:
+        texts += ["adaptive.target=f", f"adaptive.magnitudes={_listed(precision_at)}"]
+    return load_config(config, texts, seed=seed)
+
+
+def compute_from_options(*, ncpu: int | None = None, executor: str = "processes", scheduler: str | None = None,
+                         progress: bool = False):
+    """Where realizations run (:class:`~comest_bayes.pipeline.ComputeOptions`); ``ncpu`` None: every core.
+
+    A ``scheduler`` address implies the Dask executor, as ``--scheduler`` does.
+    """
+    from .executors import default_workers
+    from .pipeline import ComputeOptions
+
+    workers = ncpu if ncpu is not None else default_workers()
+    if isinstance(workers, bool) or not isinstance(workers, int):
+        raise ConfigError(f"ncpu={workers!r} must be an integer of at least 1.")
+    if workers < 1:
+        raise ConfigError(f"--ncpu {workers} must be at least 1.")
+    if executor not in ("processes", "serial", "dask"):
+        raise ConfigError(f"executor {executor!r} is not one of processes, serial, dask.")
+    return ComputeOptions(executor="dask" if scheduler else executor, workers=workers, scheduler=scheduler,
+                          progress=progress)
+
+
+# --------------------------------------------------------------------------- typed results
+
+
+@dataclass(frozen=True)
+class Interval:
+    """A posterior quantity (mag): median, 68% and 95% intervals; ``extrapolated`` when outside the injections."""
+
+    median: float
+    lo68: float | None
+    hi68: float | None
+    lo95: float | None = None
+    hi95: float | None = None
+    extrapolated: bool = False
+
+    @classmethod
+    def from_dict(cls, d: Mapping | None) -> "Interval | None":
+        if not d or d.get("median") is None:
+            return None
+        return cls(**{f.name: d.get(f.name) for f in dataclasses.fields(cls) if f.name != "extrapolated"},
+                   extrapolated=bool(d.get("extrapolated")))
+
+
+@dataclass(frozen=True)
+class ModelSummary:
+    """The model fitted to one kind's completeness (or purity), as ``summary.json`` records it.
+
+    ``name`` is the chosen model and ``candidates`` the rungs it was chosen
+    among (empty for a single requested model); ``skipped`` says why no model
+    was fitted (the other fields are then empty).
+    """
+
+    name: str | None
+    requested: str | None = None
+    candidates: tuple = ()
+    m50: Interval | None = None
+    m80: Interval | None = None
+    m90: Interval | None = None
+    sampler: str | None = None
+    converged: bool | None = None
+    warnings: tuple = ()
+    posterior_file: str | None = None
+    skipped: str | None = None
+
+    @classmethod
+    def from_info(cls, d: Mapping | None) -> "ModelSummary | None":
+        """From the model facts of :func:`comest_bayes.info.model_facts`."""
+        if not d:
+            return None
+        return cls(name=d.get("name"), requested=d.get("requested"), candidates=tuple(d.get("candidates") or ()),
+                   m50=Interval.from_dict(d.get("m50")), m80=Interval.from_dict(d.get("m80")),
+                   m90=Interval.from_dict(d.get("m90")), sampler=d.get("sampler"), converged=d.get("converged"),
+                   warnings=tuple(d.get("warnings") or ()), posterior_file=d.get("posterior_file"),
+                   skipped=d.get("skipped"))
+
+
+@dataclass(frozen=True)
+class KindSummary:
+    """One source kind's results: binned and model 50% completeness magnitudes, the models, the counts."""
+
+    kind: str
+    m50_binned: float | None
+    model: ModelSummary | None
+    purity_model: ModelSummary | None
+    counts: Mapping
+    mag_range: tuple | None = None
+
+    @property
+    def m50_model(self) -> Interval | None:
+        """The completeness model's image-average m50 (None without a fitted model)."""
+        return None if self.model is None else self.model.m50
+
+
+@dataclass(frozen=True)
+class Run:
+    """A run directory as typed values, read from its records (nothing is recomputed).
+
+    Build it with :meth:`open` (or get it from :func:`run`).  The facts come
+    from :func:`comest_bayes.info.run_info`, which ``comest-bayes info``
+    prints; :attr:`info` keeps that whole record.
+
+    Attributes
+    ----------
+    path : Path
+        The run directory.
+    status : str
+        ``finished``, ``running`` or ``partial``.
+    kinds : mapping of str to KindSummary
+        Per source kind, in the run's order.
+    warnings : tuple of str
+        Every warning the run recorded (model fits, failed realizations,
+        the source-free image).
+    info : mapping
+        The full record of :func:`~comest_bayes.info.run_info`.
+    """
+
+    path: Path
+    status: str
+    kinds: Mapping
+    warnings: tuple
+    info: Mapping
+
+    @classmethod
+    def open(cls, path) -> "Run":
+        """Read a run directory (finished or partial); :class:`RunDirectoryError` when it is not one."""
+        from .info import run_info
+
+        facts = run_info(path)
+        kinds = {}
+        for kind, k in facts["kinds"].items():
+            rng = k.get("mag_range")
+            kinds[kind] = KindSummary(kind=kind, m50_binned=k.get("m50_binned"),
+                                      model=ModelSummary.from_info(k.get("model")),
+                                      purity_model=ModelSummary.from_info(k.get("purity_model")),
+                                      counts=MappingProxyType(dict(k.get("counts") or {})),
+                                      mag_range=None if rng is None else tuple(rng))
+        return cls(path=Path(path), status=facts["status"], kinds=MappingProxyType(kinds),
+                   warnings=tuple(facts["warnings"]), info=MappingProxyType(facts))
+
+    def _kind(self, kind: str) -> KindSummary:
+        if kind not in self.kinds:
+            hint = difflib.get_close_matches(str(kind), list(self.kinds), n=1)
+            raise InputError(f"the run in {str(self.path)!r} has no results for kind {kind!r}"
+                             + (f"; did you mean {hint[0]!r}?" if hint else "")
+                             + f" Its kinds: {list(self.kinds) or 'none yet'}.")
+        return self.kinds[kind]
+
+    def summary(self, kind: str) -> KindSummary:
+        """The results of one source kind (``InputError`` naming the run's kinds when it has none)."""
+        return self._kind(kind)
+
+    def catalog(self, kind: str, name: str = "matched"):
+        """A merged catalog of one kind as an astropy Table.
+
+        ``name`` is one of :data:`CATALOGS`: ``injected`` (every injection),
+        ``matched`` (injection-detection pairs), ``unmatched``, ``false``
+        (detections matching no source) or ``outcomes`` (one row per
+        injection: true magnitude, position, detected).
+        """
+        from astropy.table import Table
+
+        self._kind(kind)
+        if name not in CATALOGS:
+            raise InputError(f"unknown catalog {name!r}; a run holds {', '.join(CATALOGS)} per kind.")
+        path = self.path / "catalogs" / f"{kind}_{name}.fits"
+        if not path.is_file():
+            raise InputFileError(f"{str(path)!r} does not exist; the run may be partial (rerun it to finish).")
+        return Table.read(path)
+
+    def posterior(self, kind: str, quantity: str = "completeness"):
+        """The saved posterior of one kind's completeness (or ``quantity="purity"``) model.
+
+        Returns
+        -------
+        comest_bayes.posterior.CompletenessPosterior
+        """
+        from .posterior import CompletenessPosterior
+
+        entry = self._kind(kind)
+        if quantity not in ("completeness", "purity"):
+            raise InputError(f"quantity {quantity!r} must be 'completeness' or 'purity'.")
+        model = entry.model if quantity == "completeness" else entry.purity_model
+        if model is None or model.skipped or not model.posterior_file:
+            why = f" ({model.skipped})" if model is not None and model.skipped else ""
+            raise InputFileError(f"the run in {str(self.path)!r} holds no {quantity} posterior for kind {kind!r}{why};"
+                                 f" was it run with model 'none'?")
+        return CompletenessPosterior.load(self.path / model.posterior_file)
+
+    def summary_json(self) -> dict:
+        """The run's ``summary.json`` as a dict (every number the run wrote)."""
+        import json
+
+        path = self.path / "summary.json"
+        if not path.is_file():
+            raise InputFileError(f"{str(path)!r} does not exist; the run is {self.status}.")
+        return json.loads(path.read_text())
+
+
+# --------------------------------------------------------------------------- run
+
+
+def _image_fields() -> tuple:
+    from .pipeline import ImageOptions
+
+    return tuple(f.name for f in dataclasses.fields(ImageOptions) if f.name != "path")
+
+
+def run(image, *, out, log: Callable[[str], None] | None = None, **options) -> Run:
+    """Run every stage on an image, as ``comest-bayes run IMAGE --out OUT`` does, and return the run.
+
+    Parameters
+    ----------
+    image : str or Path
+        FITS image.
+    out : str or Path
+        Run directory: new, empty, or a run of the same inputs to resume.
+    log : callable, optional
+        Receives one line per stage (default: ``print``; ``quiet=True`` silences it).
+    **options
+        The options of ``comest-bayes run`` by their Python names:
+
+        * image facts: ``hdu``, ``zp``, ``pixel_scale``, ``fwhm``, ``gain``,
+          ``saturation``, ``weight``, ``weight_type``, ``weight_hdu``,
+          ``mask``, ``mask_hdu``, ``mask_bits``;
+        * configuration: ``config`` (TOML path), ``overrides``
+          (``--set``: a list of ``"section.key=value"`` or a mapping), ``seed``,
+          ``no_bnb``, ``precision_at`` and the shortcuts of :data:`SHORTCUTS`
+          (``backend``, ``thresh``, ``minarea``, ``kinds``, ``nsims``,
+          ``density``, ``model``, ``precision``, ``max_nsims``);
+        * compute (results do not depend on them): ``ncpu`` (default every
+          core), ``executor``, ``scheduler``;
+        * ``no_report`` (do not write ``report.html``), ``quiet``.
+
+    Returns
+    -------
+    Run
+
+    Raises
+    ------
+    ConfigError
+        An unknown option or a value the configuration refuses, before
+        anything is written.
+    ComestError
+        Every input error ``comest-bayes run`` reports (see the README), also
+        before anything is written.
+    """
+    from .pipeline import ImageOptions, run_pipeline
+
+    facts = _image_fields()
+    known = set(facts) | set(CONFIG_OPTIONS) | set(SHORTCUTS) | set(COMPUTE_OPTIONS) | {"no_report", "quiet"}
+    unknown = sorted(set(options) - known)
+    if unknown:
+        hints = {u: difflib.get_close_matches(u, sorted(known), n=1) for u in unknown}
+        said = ", ".join(f"{u!r}" + (f" (did you mean {h[0]!r}?)" if h else "") for u, h in hints.items())
+        raise ConfigError(f"unknown option(s) of comest_bayes.run: {said}; valid options: {', '.join(sorted(known))}.")
+    if options.get("quiet"):
+        log = lambda line: None  # noqa: E731
+    elif log is None:
+        log = print
+    config = config_from_options(**{k: options[k] for k in (*CONFIG_OPTIONS, *SHORTCUTS) if k in options})
+    compute = compute_from_options(**{k: options[k] for k in COMPUTE_OPTIONS if k in options})
+    kw = {k: options[k] for k in facts if k in options}
+    for name in ("weight", "mask"):
+        if kw.get(name) is not None:
+            kw[name] = str(kw[name])
+    image_options = ImageOptions(path=str(image), **kw)
+    result = run_pipeline(image_options, config, out, log=log, compute=compute)
+    if not options.get("no_report"):
+        from .report import write_report
+
+        try:  # as the command line does: a finished run stays finished when its report fails
+            log(f"report: {write_report(result.out_dir, log=log)}")
+        except Exception as exc:
+            warnings.warn(f"the report could not be written ({type(exc).__name__}: {exc}); the run's outputs are "
+                          f"complete. Retry with comest_bayes.write_report({str(result.out_dir)!r}).", stacklevel=2)
+    return Run.open(result.out_dir)
+
+
+# --------------------------------------------------------------------------- fit an outcome table
+
+
+@dataclass(frozen=True)
+class CompletenessFit:
+    """What :func:`fit_completeness` returns.
+
+    Attributes
+    ----------
+    kind : str
+    posterior : comest_bayes.posterior.CompletenessPosterior
+        The fitted (or selected and fitted) model's posterior.
+    model : ModelSummary
+        The chosen model, m50/m80/m90 with intervals, sampler and warnings.
+    entry : mapping
+        The whole ``summary.json`` entry (curve, parameters, selection table,
+        shape check; :mod:`comest_bayes.fitting` documents it).
+    out : Path or None
+        The output folder, or None when none was asked for.
+    """
+
+    kind: str
+    posterior: object
+    model: ModelSummary
+    entry: Mapping
+    out: Path | None
+
+
+def fit_completeness(outcomes, out=None, *, kind: str = "injections", model: str = "auto",
+                     columns: Mapping | None = None, noise_map=None, mask=None, image_shape=None, seed: int = 0,
+                     log: Callable[[str], None] | None = None) -> CompletenessFit:
+    """Fit the completeness model to injection outcomes from any pipeline (``comest-bayes fit``).
+
+    Parameters
+    ----------
+    outcomes : str, Path or astropy.table.Table
+        One row per injection: true magnitude, detected (bool or 0/1) and
+        optionally pixel position and local detection noise (column names:
+        ``columns``, default ``mag``, ``detected``, ``x``, ``y``, ``noise``;
+        a run's ``catalogs/<kind>_outcomes.fits`` matches them).
+    out : str or Path, optional
+        Folder (new or empty) for ``summary.json``, the posterior and a
+        figure; by default nothing is kept on disk.
+    kind, model, columns, image_shape, seed
+        As :func:`comest_bayes.fitting.fit_outcome_file`.
+    noise_map, mask : str, Path or 2-D array, optional
+        Detection noise and bad pixels (non-zero = bad) of the image: the
+        image average then covers every unmasked pixel.
+    log : callable, optional
+        Receives progress lines (default: silent).
+
+    Returns
+    -------
+    CompletenessFit
+    """
+    import numpy as np
+
+    from .fitting import fit_outcome_file
+    from .info import model_facts
+    from .posterior import CompletenessPosterior
+
+    log = log or (lambda line: None)
+    with tempfile.TemporaryDirectory(prefix="comest-fit-") as scratch:
+        scratch = Path(scratch)
+
+        def on_disk(value, name: str):
+            """A path as given; a table or array written to the scratch folder."""
+            if value is None or isinstance(value, (str, Path)):
+                return value
+            if name == "outcomes":
+                from astropy.table import Table
+
+                path = scratch / "outcomes.fits"
+                try:
+                    Table(value).write(path)
+                except Exception as exc:
+                    raise InputError(f"outcomes must be a table file or a table (astropy Table, dict of columns); "
+                                     f"got {type(value).__name__}: {exc}") from None
+                return path
+            from astropy.io import fits
+
+            arr = np.asarray(value)
+            if arr.ndim != 2:
+                raise InputError(f"{name} must be a FITS path or a 2-D array; got an array of shape {arr.shape}.")
+            path = scratch / f"{name}.fits"
+            fits.PrimaryHDU(arr.astype(np.uint8) if arr.dtype == bool else arr).writeto(path)
+            return path
+
+        table = on_disk(outcomes, "outcomes")
+        noise = on_disk(noise_map, "noise_map")
+        bad = on_disk(mask, "mask")
+        folder = Path(out) if out is not None else scratch / "fit"
+        summary = fit_outcome_file(table, folder, kind=kind, model=model, columns=dict(columns or {}),
+                                   noise_map=noise, mask=bad, image_shape=image_shape, seed=seed, log=log)
+        entry = summary["kinds"][kind]["model"]
+        post = CompletenessPosterior.load(folder / entry["posterior_file"])
+    return CompletenessFit(kind=kind, posterior=post, model=ModelSummary.from_info(model_facts(entry)),
+                           entry=MappingProxyType(entry), out=None if out is None else Path(out))
