@@ -106,7 +106,7 @@ from .sources import (FWHM_PER_SIGMA, CosmosSample, buldisk_k, buldisk_radius_pe
                       make_psf, psf_half_light_radius_pix, source_profile)
 
 __all__ = ["TRUTH_COLUMNS", "FLAG_MASKED", "FLAG_OFF_IMAGE", "FLAG_DRAW_ERROR", "MAX_FFT_SIZE",
-           "make_truth", "render_truth", "local_jacobians", "psf_enclosed_radius_pix", "StampRenderer",
+           "make_truth", "render_truth", "local_jacobians", "psf_enclosed_radius_pix", "point_stamp_size", "StampRenderer",
            "KGrid", "fft_size", "MAX_PSF_RADIUS_PIX", "BATCH_CHUNK_ELEMENTS"]
 
 FLAG_MASKED = 1
@@ -445,6 +445,39 @@ def psf_enclosed_radius_pix(psf_pix, fraction: float = 0.995,
 _ENCLOSED_MAX_OVERSAMPLE = 16
 #: Largest side (samples) of the fine grid of the PSF's growth curve.
 _ENCLOSED_MAX_SAMPLES = 2049
+
+
+def point_stamp_size(psf, pixel_scale: float, flux_fraction: float = 0.995) -> dict:
+    """The stamp a point source gets from :func:`render_truth`, and why (recorded in ``run.json``).
+
+    Parameters
+    ----------
+    psf : galsim.GSObject
+        Unit-flux effective PSF in arcsec (:func:`comest_bayes.sources.make_psf`).
+    pixel_scale : float
+        Arcsec per pixel.
+    flux_fraction : float
+        Light fraction the stamps are sized to enclose (``render_truth``'s default 0.995).
+
+    Returns
+    -------
+    dict
+        ``half_size_pix`` (the point-source stamp is ``2 half_size + 1`` pixels
+        on a side), ``psf_radius_pix`` and ``enclosed_fraction`` (of the
+        continuous profile within that radius), ``flux_fraction`` (requested),
+        ``capped`` (the radius hit :data:`MAX_PSF_RADIUS_PIX`) and ``source``
+        (one sentence).  Galaxy stamps add the galaxy's own extent to the
+        PSF radius.
+    """
+    r_psf, enclosed = psf_enclosed_radius_pix(galsim.PixelScale(pixel_scale).toImage(psf), flux_fraction)
+    half = max(2, int(math.ceil(r_psf + 1.0)))
+    capped = bool(enclosed < flux_fraction - 1e-6)
+    source = (f"radius enclosing {100 * flux_fraction:.1f}% of the injected PSF's light, measured on its growth "
+              f"curve, plus 1 px")
+    if capped:
+        source += f" (capped at {MAX_PSF_RADIUS_PIX} px: the stamp holds {100 * enclosed:.1f}%)"
+    return {"half_size_pix": half, "psf_radius_pix": float(r_psf), "enclosed_fraction": float(enclosed),
+            "flux_fraction": float(flux_fraction), "capped": capped, "source": source}
 
 
 def _growth_curve(psf_pix, m: int, step: float, flux: float, inner: float = 0.0):

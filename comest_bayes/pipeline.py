@@ -293,7 +293,7 @@ def _run_pipeline(options: ImageOptions, config: RunConfig, out_dir, *, log, com
             check_injection_count(shape=image.shape, mask=image.mask, pixel_scale=image.pixel_scale,
                                   fwhm_pix=SMALLEST_SEEING_PIX, injection=config.injection, fwhm_assumed=True)
             raise
-        psf_choice = injection_psf(config.injection, fwhm)
+        psf_choice = injection_psf(config.injection, fwhm, pixel_scale=image.pixel_scale)
         fwhm_seconds = time.perf_counter() - t0
 
     fwhm_arcsec = float(fwhm["fwhm"]) * image.pixel_scale

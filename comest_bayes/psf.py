@@ -799,7 +799,7 @@ def measure_seeing(data_sub, catalog, *, mask=None, saturation_flagged: bool = T
     )
 
 
-def injection_psf(injection, seeing: dict) -> dict:
+def injection_psf(injection, seeing: dict, *, pixel_scale: float | None = None) -> dict:
     """The PSF the injections use, and where each of its numbers came from.
 
     Parameters
@@ -808,6 +808,10 @@ def injection_psf(injection, seeing: dict) -> dict:
         ``psf`` and ``moffat_beta`` (0: the stars' beta).
     seeing : dict
         From :func:`measure_seeing`.
+    pixel_scale : float, optional
+        Arcsec per pixel; when given, the point-source stamp size is decided
+        here too (``stamp``, :func:`comest_bayes.injection.point_stamp_size`)
+        and named in ``description``.
 
     Returns
     -------
@@ -816,8 +820,9 @@ def injection_psf(injection, seeing: dict) -> dict:
         ``fwhm_pix`` and ``fwhm_source``, ``beta`` and ``beta_source``
         (Moffat only; else None), ``pixel_integrated`` (the profile is
         convolved with the pixel: the FWHM and beta were fitted with a
-        pixel-integrated model), ``description`` (one sentence) and
-        ``warnings`` (e.g. a fitted beta at a bound of :data:`BETA_RANGE`).
+        pixel-integrated model), ``description`` (one sentence),
+        ``warnings`` (e.g. a fitted beta at a bound of :data:`BETA_RANGE`)
+        and, with ``pixel_scale``, ``stamp`` (the point-source stamp and why).
 
     Notes
     -----
@@ -865,6 +870,18 @@ def injection_psf(injection, seeing: dict) -> dict:
     else:
         out["description"] = f"the PSF image {model}"
         out["fwhm_source"] += " (used for the matching radius and separations only)"
+    if pixel_scale is not None:
+        from .injection import point_stamp_size
+        from .sources import make_psf
+
+        profile = make_psf(injection, fwhm, pixel_scale, beta=out["beta"], pixel_integrated=out["pixel_integrated"])
+        out["stamp"] = point_stamp_size(profile, pixel_scale)
+        half = out["stamp"]["half_size_pix"]
+        out["description"] += (f"; point-source stamps {2 * half + 1}x{2 * half + 1} px "
+                               f"({100 * out['stamp']['enclosed_fraction']:.1f}% of the light)")
+        if out["stamp"]["capped"]:
+            warn.append(f"the PSF's wings need stamps wider than {2 * half + 1} px: they hold only "
+                        f"{100 * out['stamp']['enclosed_fraction']:.1f}% of a point source's light")
     return out
 
 

@@ -59,8 +59,8 @@ CTIO I     16.39  16.34   16.36; 16.41   16.80
 Bright-end completeness 1.000 on all seven; the run's size check: KiDS ratio 0.956 (125 stars;
 0.978 at the same signal-to-noise), the others "not enough" stars (DECam cutouts 0-3 compact
 sources with SNR >= 20, JWST 2).  The 2MASS field (injected on the observed image): binned m50 9.52
-against 13.25 from its noise, bright-end completeness 0.38.  The whole file takes about 115 s on
-one core (2MASS 59 s of it).
+against 13.25 from its noise, bright-end completeness 0.38.  The whole file takes about 140 s on
+one core of a shared 2-core machine (2MASS 66 s of it, KiDS 17 s, each DECam cutout 7-13 s).
 """
 
 from __future__ import annotations
@@ -234,6 +234,16 @@ def test_real_image_runs_and_its_point_source_m50_is_where_the_noise_predicts(ca
     assert psf["fwhm_pix"] == pytest.approx(image["fwhm_pix"])
     if "--fwhm" in case.facts:
         assert psf["fwhm_source"] == "user --fwhm"
+    # the point-source stamp: the radius holding 99.5% of the light, plus a pixel
+    stamp = psf["stamp"]
+    assert stamp["flux_fraction"] == 0.995 and stamp["enclosed_fraction"] >= 0.995 and not stamp["capped"]
+    assert stamp["half_size_pix"] == math.ceil(stamp["psf_radius_pix"] + 1.0) and stamp["source"]
+    if not psf["pixel_integrated"]:
+        # a Moffat sampled at pixel centres leaves (1 + (R/alpha)^2)^(1 - beta) of its light outside R
+        beta = psf["beta"]
+        alpha = psf["fwhm_pix"] / (2.0 * math.sqrt(2.0 ** (1.0 / beta) - 1.0))
+        radius = alpha * math.sqrt(0.005 ** (1.0 / (1.0 - beta)) - 1.0)
+        assert stamp["psf_radius_pix"] == pytest.approx(radius, rel=0.03), (stamp, radius)
 
     # the run's own size check of injected point sources against the image's stars
     check = point["size_check"]
@@ -279,3 +289,25 @@ def test_crowded_2mass_field_runs_on_the_observed_image_and_reports_the_confusio
     assert bright.sum() >= 500
     assert detected[bright].mean() < 0.6
     assert summary["kinds"]["point"]["m50_binned"] < predicted - 2.0
+
+
+@pytest.mark.slow  # about 10 s: one small run and its report
+def test_report_shows_each_decision_and_where_it_came_from(shared_data, tmp_path):
+    from html import escape
+
+    from comest_bayes.report import write_report
+
+    case = next(c for c in CASES if c.name == "jwst_f200w")
+    case = Case(**{**case.__dict__, "nsims": 2})
+    _, state, _ = _run(case, shared_data, tmp_path / "run")
+    html = write_report(tmp_path / "run").read_text()
+    image, psf = state["image"], state["psf"]
+    # zero point from BUNIT MJy/sr and PIXAR_SR, no gain for a flux unit, the user's FWHM with the
+    # default beta, and the stamp size, each next to where it came from
+    assert image["zeropoint"] == pytest.approx(28.03, abs=0.005)
+    assert f"{image['zeropoint']:.3f} mag" in html and escape(image["provenance"]["zeropoint"]) in html
+    assert image["gain_decision"]["source"] == "none" and "flux unit" in image["gain_decision"]["reason"]
+    assert escape(image["provenance"]["gain"]) in html
+    assert escape(psf["description"]) in html and "point-source stamps" in psf["description"]
+    assert f"{2 * psf['stamp']['half_size_pix'] + 1}x{2 * psf['stamp']['half_size_pix'] + 1} px" in html
+    assert "user --fwhm" in html and escape(psf["beta_source"]) in html
