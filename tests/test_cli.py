@@ -15,13 +15,29 @@ SUBCOMMANDS = ("run", "demo", "report", "lf", "fit", "info")
 
 def test_every_subcommand_has_a_help_that_prints(capsys):
     parser = build_parser()
-    assert set(SUBCOMMANDS) <= set(parser._subparsers._group_actions[0].choices)
+    choices = parser._subparsers._group_actions[0].choices
+    # the list is the parser's own: a new subcommand is covered here, or this fails
+    assert set(choices) == set(SUBCOMMANDS)
+    with pytest.raises(SystemExit) as exc:
+        main(["--help"])
+    assert exc.value.code == 0
+    top = capsys.readouterr().out
+    assert top.startswith("usage: comest-bayes")
     for name in SUBCOMMANDS:
+        assert name in top
         with pytest.raises(SystemExit) as exc:
             main([name, "--help"])
         assert exc.value.code == 0
-        out = capsys.readouterr().out
-        assert out.startswith("usage: comest-bayes " + name) and len(out) > 200
+        captured = capsys.readouterr()
+        out = captured.out
+        assert out.startswith("usage: comest-bayes " + name) and len(out) > 200 and not captured.err
+        # every option of the subcommand is listed with its help text (a bare % in a help string crashed lf)
+        for action in choices[name]._actions:
+            for flag in action.option_strings:
+                assert flag in out, (name, flag)
+            if action.option_strings and action.help:
+                first = action.help.split("%")[0].split()[:3]
+                assert " ".join(first) in " ".join(out.split()), (name, action.option_strings, first)
 
 
 @pytest.fixture(scope="module")
