@@ -377,10 +377,11 @@ def test_compressed_likelihood_agrees_with_unbinned(big, spec):
 
 
 def test_cell_count_is_bounded_independently_of_n():
-    # 7 mag range / dm = 0.02 -> at most 350 bins, each split by outcome -> 700 cells.
+    # 7 mag range / dm = 0.02 -> at most 350 bins, each split by outcome -> 700 cells (fewer: the step
+    # grows to dm_max on the plateau and the floor), whatever N.
     small = compress_for("logistic", *synthetic(10_000, 13))
     large = compress_for("logistic", *synthetic(1_000_000, 14))
-    assert large.ncells <= 2 * 351 and small.ncells <= large.ncells
+    assert large.ncells <= 2 * 351 and small.ncells <= 2 * 351
     assert large.ntotal == 1_000_000
     # with depth resolved too, cells are bounded by the occupied (m - depth, depth) grid, not by N
     cov14 = synthetic(1_000_000, 14)[0]
@@ -389,6 +390,33 @@ def test_cell_count_is_bounded_independently_of_n():
     large_d = compress_for("logistic_depth", *synthetic(1_000_000, 14))
     assert large_d.ncells <= 2 * (math.ceil(span / 0.02) + 1) * (math.ceil((hi - lo) / 0.1) + 1)
     assert set(large_d.meta["binned"]) == {"m", "depth"}
+
+
+def test_magnitude_step_grows_where_outcomes_do_not_mix():
+    # Truth: m50 = 24 (+ depth), w = 0.2, plateau 0.95, floor 0.01, injected over 20-27 mag; the magnitude grid
+    # alone (no depth resolved).  The step is dm sqrt(0.25 / p(1 - p)) of the local detected fraction p,
+    # within [dm, dm_max]: ~0.046 mag on the plateau (p = 0.95), the full 0.1 on the floor (p = 0.01), and
+    # dm = 0.02 through the transition.  Measured as the span of each cell's members (one outcome class per
+    # cell, split_outcomes), so a cell spans at most its step.
+    cov, y = synthetic(200_000, 21)
+    fine = compress(cov, y, dm=0.02, ddepth=None, nuv=None, dsize=None)
+    grown = compress(cov, y, dm=0.02, ddepth=None, nuv=None, dsize=None, dm_max=0.1)
+    assert grown.meta["dm_max"] == 0.1 and grown.ntotal == fine.ntotal == 200_000
+    assert grown.ncells < 0.5 * fine.ncells
+
+    def spans(data, lo, hi):
+        sel = (cov.m >= lo) & (cov.m < hi)
+        idx, m = data.index[sel], cov.m[sel]
+        return np.array([np.ptp(m[idx == c]) for c in np.unique(idx)])
+
+    # the transition keeps the fine step (a cell across a coarse-bin edge takes a little of the next step)
+    assert spans(grown, 23.9, 24.1).max() <= 1.05 * 0.02
+    plateau = spans(grown, 20.5, 22.5)
+    assert plateau.max() <= 0.1 + 1e-9 and np.median(plateau) > 0.035
+    floor = spans(grown, 25.8, 26.8)
+    assert floor.max() <= 0.1 + 1e-9 and np.median(floor) > 0.08
+    with pytest.raises(InputError, match="dm_max"):
+        compress(cov, y, dm_max=-1.0)
 
 
 def test_compression_arguments_are_checked():
