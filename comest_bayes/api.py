@@ -26,7 +26,7 @@ from pathlib import Path
 from types import MappingProxyType
 from typing import Callable, Mapping
 
-from .errors import ConfigError, InputError, InputFileError
+from .errors import ComestError, ConfigError, InputError, InputFileError
 
 __all__ = ["run", "fit_completeness", "Run", "KindSummary", "ModelSummary", "Interval", "CompletenessFit",
            "config_from_options", "compute_from_options", "SHORTCUTS", "CATALOGS"]
@@ -307,6 +307,24 @@ def _image_fields() -> tuple:
     return tuple(f.name for f in dataclasses.fields(ImageOptions) if f.name != "path")
 
 
+def _refuse_worker_reimport() -> None:
+    """Raise when a worker process is re-importing the user's script (whose top level calls :func:`run`).
+
+    Worker processes start by importing the main script again (the ``spawn``
+    and ``forkserver`` start methods; JAX forbids ``fork``).  A script that
+    calls :func:`run` at its top level would then start the run again in
+    every worker, where it meets the parent's lock.  Without this check the
+    parent only sees a ``BrokenProcessPool``.
+    """
+    import sys
+
+    caller = sys._getframe(2)  # the frame that called run()
+    if caller.f_code.co_name == "<module>" and caller.f_globals.get("__name__") == "__mp_main__":
+        raise ComestError("comest_bayes.run was called while a worker process re-imported your script: put the "
+                          "call under `if __name__ == \"__main__\":` (worker processes import the main script "
+                          "again), or pass ncpu=1 to run without worker processes.")
+
+
 def run(image, *, out, log: Callable[[str], None] | None = None, **options) -> Run:
     """Run every stage on an image, as ``comest-bayes run IMAGE --out OUT`` does, and return the run.
 
@@ -348,6 +366,7 @@ def run(image, *, out, log: Callable[[str], None] | None = None, **options) -> R
     """
     from .pipeline import ImageOptions, run_pipeline
 
+    _refuse_worker_reimport()
     facts = _image_fields()
     known = set(facts) | set(CONFIG_OPTIONS) | set(SHORTCUTS) | set(COMPUTE_OPTIONS) | {"no_report", "quiet"}
     unknown = sorted(set(options) - known)
@@ -371,7 +390,7 @@ def run(image, *, out, log: Callable[[str], None] | None = None, **options) -> R
         from .report import write_report
 
         try:  # as the command line does: a finished run stays finished when its report fails
-            log(f"report: {write_report(result.out_dir, log=log)}")
+            write_report(result.out_dir, log=log)  # logs where it wrote
         except Exception as exc:
             warnings.warn(f"the report could not be written ({type(exc).__name__}: {exc}); the run's outputs are "
                           f"complete. Retry with comest_bayes.write_report({str(result.out_dir)!r}).", stacklevel=2)
