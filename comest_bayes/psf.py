@@ -52,6 +52,7 @@ curvature at the centre has a FWHM only 0.2 % larger than the Gaussian's.
 
 from __future__ import annotations
 
+import math
 import re
 from dataclasses import asdict, dataclass, field
 from typing import NamedTuple
@@ -65,7 +66,7 @@ from .errors import InputError
 
 __all__ = ["FwhmEstimate", "estimate_fwhm", "select_stars", "fit_moffat", "moffat_image", "BAD_FLAGS",
            "BETA_RANGE", "HEADER_SEEING_KEYWORDS", "HeaderSeeing", "seeing_from_header", "measure_seeing",
-           "injection_psf", "point_size_check"]
+           "injection_psf", "point_size_check", "empirical_psf"]
 
 #: Catalog flags that disqualify a star candidate.
 BAD_FLAGS = FLAG_MASKED | FLAG_BLENDED | FLAG_SATURATED | FLAG_EDGE | FLAG_APER_TRUNC | FLAG_DEBLEND_OVERFLOW
@@ -868,7 +869,7 @@ def injection_psf(injection, seeing: dict, *, pixel_scale: float | None = None) 
         out["description"] = shape + (" integrated over the pixel, as fitted on the stars"
                                       if out["pixel_integrated"] else " as the effective PSF (sampled at pixel centres)")
     else:
-        out["description"] = f"the PSF image {model}"
+        out["description"] = f"PSF image {model} (the effective PSF, sampled at pixel centres)"
         out["fwhm_source"] += " (used for the matching radius and separations only)"
     if pixel_scale is not None:
         from .injection import point_stamp_size
@@ -1000,3 +1001,88 @@ def _matched_size_check(stars, s_snr, injected, i_snr, min_sources, verdict):
     err = ratio * float(np.hypot(es / ms, ei / mi))
     return {"ratio": ratio, "ratio_err": err, "stars": ms, "injected": mi, "nstars": int(star_r.size),
             "ninjected": int(inj_r.size), "snr_range": [float(lo), float(hi)], "status": verdict(ratio, err)}
+
+
+def empirical_psf(data_sub, catalog, star_rows, *, half_size: int, mask=None, min_stars: int = 10):
+    """The effective PSF of an image, stacked from its own stars.
+
+    A fitted Moffat describes a star's core but not always its outer wings
+    (on the shared KiDS r image the stars hold 87 % of their light within
+    5 px against 92 % for the fitted Moffat of beta 2.1).  This stacks the
+    stars instead: each isolated star's stamp is shifted (cubic spline) so
+    that its centroid falls on the centre of the middle pixel, divided by
+    its flux within the stamp, and the stamps are combined pixel by pixel
+    with a 3-sigma clipped mean.  The result is the effective PSF sampled at
+    pixel centres, for ``injection.psf = <FITS file>`` (write it with
+    :func:`astropy.io.fits.writeto`; :func:`comest_bayes.sources.make_psf`
+    reads it at the image's pixel scale).  It assumes the PSF does not vary
+    over the image and is sampled well enough for the sub-pixel shift (FWHM
+    above about 2 px).
+
+    Parameters
+    ----------
+    data_sub : ndarray, shape (ny, nx)
+        Background-subtracted image.
+    catalog : astropy.table.Table
+        Its detection catalog (``xwin``, ``ywin``, ``a``, ``flux_radius``).
+    star_rows : sequence of int
+        Rows of the stars (e.g. ``run.json`` -> ``stages.fwhm.estimate.star_rows``).
+    half_size : int
+        The stamp is ``2 half_size + 1`` pixels on a side.
+    mask : ndarray of bool, optional
+        Bad pixels; a star with one in its stamp is skipped.
+    min_stars : int
+        Fewer isolated stars raise :class:`~comest_bayes.errors.InputError`.
+
+    Returns
+    -------
+    psf : ndarray, shape (2 half_size + 1, 2 half_size + 1), float64
+        Unit sum.
+    nstars : int
+        Stars stacked.
+    """
+    from scipy import ndimage
+
+    data_sub = np.asarray(data_sub, dtype=float)
+    h = int(half_size)
+    if h < 2:
+        raise InputError(f"half_size must be >= 2 pixels, got {half_size!r}.")
+    ny, nx = data_sub.shape
+    mask = np.zeros(data_sub.shape, dtype=bool) if mask is None else np.asarray(mask, dtype=bool)
+    x_all = np.asarray(catalog["xwin"], dtype=float)
+    y_all = np.asarray(catalog["ywin"], dtype=float)
+    reach = np.maximum(3.0 * np.asarray(catalog["a"], dtype=float), 2.0 * np.asarray(catalog["flux_radius"], float))
+    reach = np.where(np.isfinite(reach), reach, 3.0)
+    pad = h + 3
+    stamps = []
+    for row in np.asarray(star_rows, dtype=np.int64):
+        xc, yc = x_all[row], y_all[row]
+        ix, iy = int(round(xc)), int(round(yc))
+        if ix - pad < 0 or iy - pad < 0 or ix + pad >= nx or iy + pad >= ny:
+            continue
+        # isolated: no other detection whose light reaches into the stamp
+        d = np.hypot(x_all - xc, y_all - yc)
+        d[row] = np.inf
+        if np.any(d - reach < h * math.sqrt(2.0)):
+            continue
+        cut = (slice(iy - pad, iy + pad + 1), slice(ix - pad, ix + pad + 1))
+        if mask[cut].any() or not np.all(np.isfinite(data_sub[cut])):
+            continue
+        shifted = ndimage.shift(data_sub[cut], (iy - yc, ix - xc), order=3, mode="nearest")[3:-3, 3:-3]
+        total = shifted.sum()
+        if total > 0:
+            stamps.append(shifted / total)
+    if len(stamps) < min_stars:
+        raise InputError(f"only {len(stamps)} isolated, unmasked stars with whole stamps of {2 * h + 1} px (need "
+                         f"{min_stars}) to build an empirical PSF; use the fitted Moffat instead.")
+    cube = np.array(stamps)
+    keep = np.ones(cube.shape, dtype=bool)
+    for _ in range(5):
+        mean = np.sum(cube * keep, axis=0) / np.maximum(keep.sum(axis=0), 1)
+        var = np.sum(((cube - mean) ** 2) * keep, axis=0) / np.maximum(keep.sum(axis=0) - 1, 1)
+        new = np.abs(cube - mean) <= 3.0 * np.sqrt(var) + 1e-300
+        if np.array_equal(new, keep):
+            break
+        keep = new
+    psf = np.sum(cube * keep, axis=0) / np.maximum(keep.sum(axis=0), 1)
+    return psf / psf.sum(), len(stamps)
