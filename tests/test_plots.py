@@ -247,9 +247,9 @@ def test_band_width_panel_and_caption_give_the_posterior_widths():
     assert w["mag_max95"] == pytest.approx(22.3)
     text = band_caption(band)
     assert "widest 95% band 0.004 in f (at 22.30 mag)" in text and "widest 68% band 0.002" in text
-    assert "not visible at the 0-1 scale" in text
+    assert "narrower than 0.05, hardly visible at the 0-1 scale" in text
     wide = PosteriorBand(mag, med, med - 0.02, med + 0.02, med - 0.05, med + 0.05, label="p")
-    assert "not visible" not in band_caption(wide) and "widest 95% band 0.100" in band_caption(wide)
+    assert "hardly visible" not in band_caption(wide) and "widest 95% band 0.100" in band_caption(wide)
     fig = ratios_figure("point", _binned(), None, completeness_posterior=band)
     low = fig.axes[1]
     # the panel draws hi95 - lo95 on its own scale: the top of its y axis is just above the widest band

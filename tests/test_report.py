@@ -200,6 +200,8 @@ def test_band_widths_are_drawn_and_stated_from_the_posterior(report_run, report_
         w68 = np.max(np.asarray(band.hi68) - np.asarray(band.lo68))
         assert f"widest 68% band {w68:.3f}" in caption
         assert f"widest 95% band {w95[j]:.3f} in f" in html
+        # bands under 0.05 wide are said to be hardly visible at full scale, wider ones are not
+        assert ("hardly visible" in caption.split("Purity:")[0]) == bool(w95[j] < 0.05)
         # the band-width panel under the completeness panel draws hi95 - lo95 against magnitude
         low = fig.axes[1]
         assert low.get_ylabel() == "band width"

@@ -119,8 +119,8 @@ def band_caption(posterior: PosteriorBand, quantity: str = "completeness") -> st
     sym = "f" if quantity == "completeness" else "purity"
     text = (f"{posterior.label}: widest 95% band {b['max95']:.3f} in {sym} (at {b['mag_max95']:.2f} mag), "
             f"widest 68% band {b['max68']:.3f}")
-    if b["max95"] < 0.02:
-        text += "; narrower than 0.02, not visible at the 0-1 scale: see the band-width panel"
+    if b["max95"] < 0.05:  # under 5% of the axis: a few pixels at most
+        text += "; narrower than 0.05, hardly visible at the 0-1 scale: see the band-width panel"
     return text
 
 
