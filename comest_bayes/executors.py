@@ -37,7 +37,7 @@ from typing import Any, Callable, Iterable, Sequence
 from .errors import BackendUnavailableError, ConfigError
 from .runtime import one_core
 
-__all__ = ["run_tasks", "EXECUTORS", "default_workers"]
+__all__ = ["run_tasks", "TaskRunner", "EXECUTORS", "default_workers"]
 
 EXECUTORS = ("serial", "processes", "dask")
 
@@ -115,9 +115,108 @@ def _mp_context():
     return mp.get_context("forkserver" if "forkserver" in methods else "spawn")
 
 
+class TaskRunner:
+    """Where tasks run, kept open across several batches of tasks.
+
+    One pool of local worker processes (or one Dask client) serves every :meth:`run` until
+    :meth:`close`: a run's injection, its adaptive batches and its fits share the workers instead of
+    starting a pool (processes that import NumPy, GalSim, JAX anew) for each.  Use as a context
+    manager.  The pool starts at the first :meth:`run` that needs it.
+
+    Parameters
+    ----------
+    executor : {"serial", "processes", "dask"}
+    workers : int
+        Local worker processes (``processes`` and a local Dask cluster).
+    scheduler : str, optional
+        A Dask scheduler address (``dask`` only; default a local cluster of ``workers``).
+    """
+
+    def __init__(self, executor: str = "serial", workers: int = 1, scheduler: str | None = None):
+        if executor not in EXECUTORS:
+            raise ConfigError(f"unknown executor {executor!r}; use one of {EXECUTORS}.")
+        self.executor, self.workers, self.scheduler = executor, int(workers), scheduler
+        self._pool = None
+        self._client = None
+        self._cluster = None
+
+    @property
+    def serial(self) -> bool:
+        """Tasks run in this process (``serial``, or ``processes`` with one worker)."""
+        return self.executor == "serial" or (self.executor == "processes" and self.workers <= 1)
+
+    def __enter__(self) -> "TaskRunner":
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+    def close(self) -> None:
+        """Stop the workers (cancelling tasks not yet started)."""
+        if self._pool is not None:
+            self._pool.shutdown(wait=True, cancel_futures=True)
+            self._pool = None
+        if self._client is not None:
+            self._client.close()
+            self._client = None
+        if self._cluster is not None:
+            self._cluster.close()
+            self._cluster = None
+
+    def run(self, fn: Callable[[Any], Any], tasks: Sequence, *, on_result: Callable[[Any, Any], None],
+            progress: bool = False, desc: str = "tasks") -> None:
+        """Apply ``fn`` to every task and pass ``(task, result)`` to ``on_result`` (see :func:`run_tasks`)."""
+        tasks = list(tasks)
+        if not tasks:
+            return
+        with _progress(len(tasks), desc, progress) as bar:
+            if self.serial:
+                # one worker: the tasks run here, on one core (XLA would otherwise spread over every core)
+                with one_core():
+                    for task in tasks:
+                        on_result(task, fn(task))
+                        bar.update()
+            elif self.executor == "processes":
+                if self._pool is None:
+                    ctx = _mp_context()
+                    self._pool = ProcessPoolExecutor(max_workers=self.workers, mp_context=ctx,
+                                                     initializer=_worker_init,
+                                                     initargs=(os.getpid(), ctx.Value("i", 0)))
+                futures = {self._pool.submit(fn, task): task for task in tasks}
+                try:
+                    for fut in as_completed(list(futures)):
+                        # pop: a finished future holds its result, so keeping it would grow the
+                        # main process with the number of tasks
+                        on_result(futures.pop(fut), fut.result())
+                        bar.update()
+                except BaseException:
+                    for fut in futures:
+                        fut.cancel()
+                    raise
+            else:
+                _run_dask(fn, tasks, on_result, self._dask_client(), bar)
+
+    def _dask_client(self):
+        if self._client is None:
+            try:
+                from distributed import Client, LocalCluster
+            except ImportError:
+                raise BackendUnavailableError(
+                    "the Dask executor needs dask.distributed: pip install 'comest-bayes[dask]' "
+                    "(or pip install 'dask[distributed]')."
+                ) from None
+            if self.scheduler:
+                self._client = Client(self.scheduler)
+            else:
+                self._cluster = LocalCluster(n_workers=max(1, self.workers), threads_per_worker=1, processes=True,
+                                             dashboard_address=None)
+                self._client = Client(self._cluster)
+        return self._client
+
+
 def run_tasks(fn: Callable[[Any], Any], tasks: Sequence, *, on_result: Callable[[Any, Any], None],
               executor: str = "serial", workers: int = 1, scheduler: str | None = None,
-              progress: bool = False, desc: str = "tasks") -> None:
+              progress: bool = False, desc: str = "tasks", runner: TaskRunner | None = None) -> None:
     """Apply ``fn`` to every task and pass ``(task, result)`` to ``on_result``.
 
     Parameters
@@ -137,63 +236,32 @@ def run_tasks(fn: Callable[[Any], Any], tasks: Sequence, *, on_result: Callable[
         Local worker processes (``processes`` and a local Dask cluster).
     progress : bool
         Show a progress bar.
+    runner : TaskRunner, optional
+        An open :class:`TaskRunner` to run on (its workers are kept for the
+        next call); ``executor``, ``workers`` and ``scheduler`` are then
+        ignored.  Without one, a runner is opened for these tasks and closed.
     """
+    if runner is not None:
+        runner.run(fn, tasks, on_result=on_result, progress=progress, desc=desc)
+        return
     if executor not in EXECUTORS:
         raise ConfigError(f"unknown executor {executor!r}; use one of {EXECUTORS}.")
     tasks = list(tasks)
     if not tasks:
         return
-    with _progress(len(tasks), desc, progress) as bar:
-        if executor == "serial" or (executor == "processes" and workers <= 1):
-            # one worker: the tasks run here, on one core (XLA would otherwise spread over every core)
-            with one_core():
-                for task in tasks:
-                    on_result(task, fn(task))
-                    bar.update()
-        elif executor == "processes":
-            ctx = _mp_context()
-            with ProcessPoolExecutor(max_workers=min(workers, len(tasks)), mp_context=ctx,
-                                     initializer=_worker_init, initargs=(os.getpid(), ctx.Value("i", 0))) as pool:
-                futures = {pool.submit(fn, task): task for task in tasks}
-                try:
-                    for fut in as_completed(list(futures)):
-                        # pop: a finished future holds its result, so keeping it would grow the
-                        # main process with the number of tasks
-                        on_result(futures.pop(fut), fut.result())
-                        bar.update()
-                except BaseException:
-                    for fut in futures:
-                        fut.cancel()
-                    raise
-        else:
-            _run_dask(fn, tasks, on_result, workers, scheduler, bar)
+    with TaskRunner(executor, min(int(workers), len(tasks)) if executor == "processes" else workers,
+                    scheduler) as one:
+        one.run(fn, tasks, on_result=on_result, progress=progress, desc=desc)
 
 
-def _run_dask(fn, tasks: Iterable, on_result, workers: int, scheduler: str | None, bar) -> None:
-    try:
-        from distributed import Client, LocalCluster, as_completed as dask_completed
-    except ImportError:
-        raise BackendUnavailableError(
-            "the Dask executor needs dask.distributed: pip install 'comest-bayes[dask]' "
-            "(or pip install 'dask[distributed]')."
-        ) from None
-    cluster = None
-    if scheduler:
-        client = Client(scheduler)
-    else:
-        cluster = LocalCluster(n_workers=max(1, workers), threads_per_worker=1, processes=True,
-                               dashboard_address=None)
-        client = Client(cluster)
-    try:
-        futures = client.map(fn, tasks, pure=False)
-        index = {f.key: t for f, t in zip(futures, tasks)}
-        completed = dask_completed(futures)
-        del futures  # as_completed holds them until they finish; released one by one below
-        for fut in completed:
-            on_result(index.pop(fut.key), fut.result())
-            fut.release()
-            bar.update()
-    finally:
-        client.close()
-        if cluster is not None:
-            cluster.close()
+def _run_dask(fn, tasks: Iterable, on_result, client, bar) -> None:
+    from distributed import as_completed as dask_completed
+
+    futures = client.map(fn, tasks, pure=False)
+    index = {f.key: t for f, t in zip(futures, tasks)}
+    completed = dask_completed(futures)
+    del futures  # as_completed holds them until they finish; released one by one below
+    for fut in completed:
+        on_result(index.pop(fut.key), fut.result())
+        fut.release()
+        bar.update()

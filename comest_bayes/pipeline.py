@@ -12,9 +12,9 @@ from __future__ import annotations
 
 import time
 import warnings
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
-from typing import Callable
+from typing import Any, Callable
 
 import numpy as np
 from astropy.io import fits
@@ -145,6 +145,8 @@ class ComputeOptions:
     workers: int = 1
     scheduler: str | None = None
     progress: bool = False
+    #: An open :class:`~comest_bayes.executors.TaskRunner` the stages share (set by the pipeline).
+    runner: Any = field(default=None, compare=False, repr=False)
 
     def describe(self) -> str:
         if self.executor == "dask":
@@ -380,8 +382,11 @@ def _run_pipeline(options: ImageOptions, config: RunConfig, out_dir, *, log, com
         log(f"warning: sourcefree: {line}")
     timings["sourcefree"] = run.stage_info("sourcefree").get("seconds")
 
-    # ---- injection and recovery ------------------------------------------------------
-    summary = _injection_stages(run, image, det, config, compute, log, timings)
+    # ---- injection and recovery, then the fits: one set of workers for every batch of tasks ----
+    from .executors import TaskRunner
+
+    with TaskRunner(compute.executor, compute.workers, compute.scheduler) as runner:
+        summary = _injection_stages(run, image, det, config, replace(compute, runner=runner), log, timings)
 
     # a resumed run keeps the times of the stages it did not redo
     run.update(timings={**run.state.get("timings", {}), **timings})
@@ -513,7 +518,7 @@ def _injection_stages(run: RunDirectory, image: ImageData, det: DetectionResult,
 
         run_tasks(realization_with_warnings, todo, on_result=on_result, executor=compute.executor,
                   workers=compute.workers, scheduler=compute.scheduler, progress=compute.progress,
-                  desc="realizations")
+                  runner=compute.runner, desc="realizations")
         timings["inject"] = round(time.perf_counter() - t0, 3)
         timings["inject_cpu"] = round(cpu["inject"], 3)
         log(f"inject: {len(todo) - len(failures)} realizations in {timings['inject']:.1f} s"
@@ -721,7 +726,7 @@ def _adaptive_injection(run: RunDirectory, ctx, config: RunConfig, compute: "Com
         if tasks:
             run_tasks(realization_with_warnings, tasks, on_result=on_result, executor=compute.executor,
                       workers=compute.workers, scheduler=compute.scheduler, progress=compute.progress,
-                      desc=f"batch {k}")
+                      runner=compute.runner, desc=f"batch {k}")
         if failed:
             raise ComestError(f"adaptive batch {k}: {len(failed)} realization(s) failed ({failed[0]}); the design of "
                               "the next batch needs them all. Rerun the same command to retry them (finished "
@@ -864,7 +869,7 @@ def _fit_stages(run: RunDirectory, image: ImageData, det: DetectionResult, confi
     progress.start()
     try:
         run_tasks(fit_task, tasks, on_result=on_result, executor=compute.executor, workers=compute.workers,
-                  scheduler=compute.scheduler, progress=compute.progress, desc="fits")
+                  scheduler=compute.scheduler, progress=compute.progress, desc="fits", runner=compute.runner)
     finally:
         progress.stop()
     return len(tasks)

@@ -91,3 +91,37 @@ def test_each_worker_runs_on_a_core_of_its_own_and_one_worker_keeps_the_main_pro
               workers=1)
     assert len(inside[0]) == 1
     assert os.sched_getaffinity(0) == before
+
+
+def _pid_after(seconds):
+    time.sleep(seconds)
+    return os.getpid()
+
+
+def test_a_runner_keeps_its_workers_across_batches():
+    # One pool for every batch of a run (injection, adaptive batches, fits): the second batch runs in the
+    # same worker processes as the first, none of them this process; a closed runner has no workers left.
+    from comest_bayes.executors import TaskRunner
+
+    seen = []
+    with TaskRunner("processes", 2) as runner:
+        for _ in range(2):
+            batch = []
+            runner.run(_pid_after, [0.3, 0.3], on_result=lambda t, pid: batch.append(pid))
+            seen.append(set(batch))
+        workers = set(runner._pool._processes)
+    assert os.getpid() not in seen[0] | seen[1]
+    assert seen[1] <= seen[0] | workers and seen[0] <= workers
+    deadline = time.monotonic() + 10
+    while any(_running(pid) for pid in workers) and time.monotonic() < deadline:
+        time.sleep(0.1)
+    assert not any(_running(pid) for pid in workers)
+
+
+def test_serial_runner_runs_here_in_order():
+    from comest_bayes.executors import TaskRunner
+
+    out = []
+    with TaskRunner("serial") as runner:
+        runner.run(_pid_after, [0.0, 0.0, 0.0], on_result=lambda t, pid: out.append(pid))
+    assert out == [os.getpid()] * 3
