@@ -465,6 +465,9 @@ class LFModel:
             from .likelihood import _cell_logs
 
             st = post.model._st
+            # the sampled completeness parameters are the model's free ones (as in its posterior draws);
+            # the link takes the full layout, with pinned slots (e.g. beta_depth of a model without depth)
+            full = post.model.full_jax
             self.comp_names = [f"c:{n}" for n in post.names]
             self.names = list(counts.names) + self.comp_names
             mu = np.asarray(prior_mean, float)
@@ -501,13 +504,13 @@ class LFModel:
 
             def lam(theta, data):
                 w_in, fd, fs, fb, fw = data[1], data[5], data[6], data[7], data[10]
-                logf_foot, _ = _cell_logs(st, theta[pc:], mrow, fd, fs, fb)
+                logf_foot, _ = _cell_logs(st, full(theta[pc:]), mrow, fd, fs, fb)
                 f_bar = fw @ jnp.exp(logf_foot)
                 return jnp.exp(log_area) * jnp.sum(jnp.exp(lphi(theta[:pc], grid)) * f_bar * w_in)
 
             def loglike(theta, data):
                 k_dt, w_in, od, os_, ob, fd, fs, fb, mu, pc_, fw = data
-                t, c = theta[:pc], theta[pc:]
+                t, c = theta[:pc], full(theta[pc:])
                 lp = lphi(t, grid)
                 mx = jnp.max(lp)
                 e = jnp.exp(lp - mx)

@@ -138,6 +138,29 @@ def _depth_posterior(nsamples=400, seed=0):
     return post
 
 
+def test_joint_model_uses_the_completeness_models_own_link_at_its_free_parameters():
+    # The joint mode samples the completeness posterior's free parameters; the link needs the full layout
+    # (pinned slots such as w_depth, beta_size).  Fed the free vector, JAX clamped the out-of-range slots to the
+    # last free value (here w_depth = beta_depth = 1): the completeness, and the counts, were wrong.
+    from comest_bayes.lf import completeness_arrays
+
+    rng = np.random.default_rng(41)
+    post = _depth_posterior()
+    n = 300
+    inputs = build_inputs(rng.uniform(20.0, 23.5, n), area_deg2=0.003, mag_range=(20.0, 23.5),
+                          transfer=_gaussian_transfer(0.02, 0.08), x=rng.uniform(0, 199, n), y=rng.uniform(0, 199, n))
+    counts = CountModel("powerlaw")
+    c = post.samples[3]
+    f_obj, f_bar = completeness_arrays(post, c[None, :], inputs)
+    fixed = LFModel(counts, inputs, f_obj=f_obj[0], f_bar=f_bar[0])
+    joint = LFModel(counts, inputs, post=post, prior_mean=post.samples.mean(axis=0),
+                    prior_cov=np.cov(post.samples, rowvar=False), depth_nodes=None)
+    t = np.array([5.5, 0.3])
+    full = np.concatenate([t, c])
+    assert joint.expected_number(full) == pytest.approx(fixed.expected_number(t), rel=1e-9)
+    assert joint.log_likelihood(full) == pytest.approx(fixed.log_likelihood(t), rel=1e-9)
+
+
 def test_joint_depth_nodes_match_the_exact_per_object_likelihood_and_batches_match_single_calls():
     # Joint mode with a depth-dependent completeness: f from 25 depth nodes, linear in between, instead of at
     # each of the N objects (N x M link values per walker: minutes and gigabytes on a demo tile).
