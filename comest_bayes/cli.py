@@ -55,7 +55,8 @@ def _add_config_options(p: argparse.ArgumentParser) -> None:
                    help="source kinds to inject, comma-separated: point, buldisk, sersic, cosmos, observed "
                         "(default point,buldisk)")
     g.add_argument("--nsims", type=int, default=None, help="realizations per kind (default 10)")
-    g.add_argument("--density", type=float, default=None, help="injections per arcmin^2 (default 15)")
+    g.add_argument("--density", type=float, default=None, help="injections per arcmin^2 (default 0: automatic, from the image; "
+                        "15 where that gives at least 100 per realization)")
     g.add_argument("--precision", type=float, default=None, metavar="MAG",
                    help="adaptive injection: add batches of realizations, their magnitudes where the posterior is "
                         "most uncertain, until the 68%% half-width of every kind's m50 is at most MAG "

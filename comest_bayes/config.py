@@ -258,7 +258,12 @@ class InjectionConfig:
         Realizations (simulated images) per kind.
     density : float
         Mean number of injections per arcmin^2 of unmasked area (Poisson-drawn);
-        ComEst's default is 15.
+        0 (default) for automatic, per kind from the image
+        (:func:`comest_bayes.preflight.choose_density`): ComEst's published 15,
+        raised on a small field of fine pixels towards 100 per realization (at
+        most one per background mesh and half of what random packing holds at
+        the minimum separation), lowered to what the placement holds where 15
+        is more; the choice goes to the log and ``run.json``.
     mag_range : tuple of float
         (bright, faint) limits of the uniform magnitude distribution; empty for
         automatic: from the image's 5-sigma point-source depth m5 as
@@ -298,7 +303,7 @@ class InjectionConfig:
 
     kinds: tuple = ("point", "buldisk")
     nsims: int = 10
-    density: float = 15.0
+    density: float = 0.0
     mag_range: tuple = ()
     placement: str = "uniform"
     min_sep: float = 0.0
@@ -319,7 +324,8 @@ class InjectionConfig:
         _check(len(self.kinds) >= 1 and all(k in KINDS for k in self.kinds), "injection.kinds", self.kinds,
                f"a list of kinds from {KINDS}")
         _check(self.nsims >= 1, "injection.nsims", self.nsims, "an integer >= 1")
-        _check(self.density > 0, "injection.density", self.density, "a positive density per arcmin^2, e.g. 15")
+        _check(0 <= self.density < float("inf"), "injection.density", self.density,
+               "0 (automatic) or a positive density per arcmin^2, e.g. 15")
         _check(len(self.mag_range) == 0 or (len(self.mag_range) == 2 and self.mag_range[0] < self.mag_range[1]),
                "injection.mag_range", self.mag_range, "[] (automatic) or [bright, faint] with bright < faint")
         _check(self.placement in PLACEMENTS, "injection.placement", self.placement, f"one of {PLACEMENTS}")

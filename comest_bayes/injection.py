@@ -100,7 +100,7 @@ from astropy.table import Table
 
 from .config import KINDS, InjectionConfig
 from .errors import ComestError, InputError
-from .placement import draw_count, pixel_index, place_sources
+from .placement import PUBLISHED_DENSITY, draw_count, pixel_index, place_sources
 from .sources import (FWHM_PER_SIGMA, CosmosSample, buldisk_k, buldisk_radius_per_hlr,
                       devaucouleurs_k_table, draw_parameters, fit_observed_population, kspace_quadratic_forms,
                       make_psf, psf_half_light_radius_pix, source_profile)
@@ -248,7 +248,9 @@ def make_truth(kind: str, *, shape, mask=None, pixel_scale: float, fwhm_pix: flo
 
     Random draws, in this order, all from ``rng``: the count
     (``Poisson(config.density * area)``, :func:`comest_bayes.placement.draw_count`;
-    skipped when ``n`` is given), the positions
+    skipped when ``n`` is given; an automatic ``config.density`` of 0 that the run has not
+    resolved per kind, :func:`comest_bayes.preflight.choose_density`, draws at the published
+    :data:`~comest_bayes.placement.PUBLISHED_DENSITY`), the positions
     (:func:`comest_bayes.placement.place_sources` with ``config.placement`` and
     ``config.min_sep`` converted to pixels), then the magnitudes and shapes
     (:func:`comest_bayes.sources.draw_parameters`).
@@ -328,7 +330,7 @@ def make_truth(kind: str, *, shape, mask=None, pixel_scale: float, fwhm_pix: flo
         raise InputError("kind 'cosmos' needs the COSMOS sample: pass cosmos=load_cosmos(config).")
 
     if n is None:
-        n = draw_count(config.density, shape, pixel_scale, rng, border_pix=border_pix)
+        n = draw_count(config.density or PUBLISHED_DENSITY, shape, pixel_scale, rng, border_pix=border_pix)
     placement = place_sources(n, shape, rng, mask=mask, method=config.placement,
                               min_sep_pix=min_separation_pix(config, fwhm_pix, pixel_scale, kind), border_pix=border_pix)
     params = draw_parameters(kind, placement.n, config=config, mag_range=mag_range, rng=rng,
@@ -359,7 +361,7 @@ def make_truth(kind: str, *, shape, mask=None, pixel_scale: float, fwhm_pix: flo
         "min_sep_pix": float(placement.min_sep_pix), "border_pix": float(border_pix),
         "mag_bright": float(mag_range[0]), "mag_faint": float(mag_range[1]), "zeropoint": float(zeropoint),
         "pixel_scale": float(pixel_scale), "fwhm_pix": float(fwhm_pix) if fwhm_pix else 0.0,
-        "density": float(config.density), "psf": config.psf,
+        "density": float(config.density or PUBLISHED_DENSITY), "psf": config.psf,
     }
     if population is not None:
         meta.update(population.meta())

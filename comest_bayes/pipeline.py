@@ -228,7 +228,7 @@ def run_pipeline(options: ImageOptions, config: RunConfig, out_dir, *,
 
 def _run_pipeline(options: ImageOptions, config: RunConfig, out_dir, *, log, compute, fwhm_fallback,
                   opened: list) -> RunResult:
-    from .preflight import SMALLEST_SEEING_PIX, check_injection_count, check_memory
+    from .preflight import SMALLEST_SEEING_PIX, budget_warnings, check_injection_count, check_memory, choose_densities
     from .psf import injection_psf, measure_seeing
     from .sourcefree import build_source_free, format_percent, judge_replacement
 
@@ -237,7 +237,9 @@ def _run_pipeline(options: ImageOptions, config: RunConfig, out_dir, *, log, com
     log(image.gain_summary())  # which gain sets the injections' photon noise, and why (run.json: image.gain_decision)
     # injections too few to give an answer, before the detection (the count without stamps)
     check_injection_count(shape=image.shape, mask=image.mask, pixel_scale=image.pixel_scale, fwhm_pix=None,
-                          injection=config.injection)
+                          injection=config.injection,
+                          densities=choose_densities(shape=image.shape, pixel_scale=image.pixel_scale, fwhm_pix=None,
+                                                     injection=config.injection, back_size=config.detection.back_size))
     filter_kernel(config.detection.filter)
     if config.detection.backend == "sextractor":
         from .sextractor import find_sextractor
@@ -306,9 +308,12 @@ def _run_pipeline(options: ImageOptions, config: RunConfig, out_dir, *, log, com
             f"{COSMOS_MIN_FWHM_ARCSEC}\" but this image's FWHM is {fwhm_arcsec:.3f}\". Use the sersic or buldisk kinds.")
 
     # ---- the injections can give an answer, in the memory there is ------------------------
+    # how many injections per realization: the user's density, or chosen per kind from the image
+    densities = choose_densities(shape=image.shape, pixel_scale=image.pixel_scale, fwhm_pix=float(fwhm["fwhm"]),
+                                 injection=config.injection, back_size=config.detection.back_size)
     budgets = check_injection_count(shape=image.shape, mask=image.mask, pixel_scale=image.pixel_scale,
                                     fwhm_pix=float(fwhm["fwhm"]), injection=config.injection,
-                                    fwhm_given=image.fwhm is not None)
+                                    fwhm_given=image.fwhm is not None, densities=densities)
     compute = compute or ComputeOptions()
     check_memory(budgets, npix=int(np.prod(image.shape)),
                  nsims=config.adaptive.max_nsims if config.adaptive.enabled else config.injection.nsims,
@@ -357,6 +362,13 @@ def _run_pipeline(options: ImageOptions, config: RunConfig, out_dir, *, log, com
         + (f"; beta: {psf_choice['beta_source']}" if psf_choice.get("beta_source") else ""))
     for line in psf_choice["warnings"]:
         log(f"warning: psf: {line}")
+    # the injection density per kind, and why (the injection stage reads it back from run.json)
+    run.update(injection_density={kind: choice.to_dict() for kind, choice in densities.items()})
+    for kind, choice in densities.items():
+        log(f"density: {kind}: {choice.reason}")
+    for line in budget_warnings(budgets, config.adaptive.max_nsims if config.adaptive.enabled
+                                else config.injection.nsims):
+        log(f"warning: density: {line}")
     # where the inputs are now (the fingerprint names them by content): the report reopens them from here
     run.update(image=image.facts(), psf=psf_choice, input_options=options.located())
 
@@ -477,6 +489,7 @@ def _injection_stages(run: RunDirectory, image: ImageData, det: DetectionResult,
         image_dir=str(run.file("sims")) if inj.write_images else None,
         psf_beta=float(psf_choice.get("beta") or 0.0),
         psf_pixel_integrated=bool(psf_choice.get("pixel_integrated", False)))
+    ctx = _contexts_by_kind(ctx, run.state.get("injection_density") or {})
 
     sims = run.file("sims")
     for stale in sims.glob("*/.tmp-*"):  # a killed run's half-written realization files
@@ -492,7 +505,7 @@ def _injection_stages(run: RunDirectory, image: ImageData, det: DetectionResult,
         timings["inject"] = round(time.perf_counter() - t0, 3)
         timings["inject_cpu"] = round(cpu["inject"], 3)
         timings["design_fit_cpu"] = round(cpu.get("design_fit", 0.0), 3)
-    todo = [RealizationTask(ctx, kind, i) for kind in inj.kinds for i in range(nsims[kind])
+    todo = [RealizationTask(ctx[kind], kind, i) for kind in inj.kinds for i in range(nsims[kind])
             if not realization_file(sims, kind, i).exists()]
     ndone = sum(nsims.values()) - len(todo)
     if todo:
@@ -589,6 +602,17 @@ def _injection_stages(run: RunDirectory, image: ImageData, det: DetectionResult,
         summary["adaptive"] = adaptive_summary
     run.write_json("summary.json", summary)
     return summary
+
+
+def _contexts_by_kind(ctx, densities: dict) -> dict:
+    """``{kind: SimContext}`` whose injection density is the one chosen for the kind (run.json's
+    ``injection_density``; a kind without a recorded choice keeps ``ctx``'s)."""
+    out = {}
+    for kind in ctx.injection.kinds:
+        choice = densities.get(kind) or {}
+        density = choice.get("density")
+        out[kind] = ctx if not density else replace(ctx, injection=replace(ctx.injection, density=float(density)))
+    return out
 
 
 #: Signal-to-noise above which the sizes of stars and injected point sources are compared.
@@ -708,7 +732,7 @@ def _adaptive_injection(run: RunDirectory, ctx, config: RunConfig, compute: "Com
             for i in range(*span[kind]):
                 if not realization_file(sims, kind, i).exists():
                     # the pilot keeps the published uniform draws (identical to a run without --precision)
-                    tasks.append(RealizationTask(ctx, kind, i, design=None if k == 0 else design.to_dict()))
+                    tasks.append(RealizationTask(ctx[kind], kind, i, design=None if k == 0 else design.to_dict()))
         failed = []
 
         def on_result(task, packed):

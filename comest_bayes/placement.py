@@ -54,10 +54,15 @@ from scipy.stats import qmc
 
 from .errors import InputError
 
-__all__ = ["Placement", "PLACEMENT_METHODS", "placement_area_arcmin2", "draw_count", "place_sources",
+__all__ = ["Placement", "PLACEMENT_METHODS", "PUBLISHED_DENSITY", "placement_area_arcmin2", "draw_count", "place_sources",
            "pixel_index", "masked_at"]
 
 PLACEMENT_METHODS = ("uniform", "grid", "halton")
+
+#: ComEst's published injection density per arcmin^2 (the method this package follows): the
+#: density of a bare :func:`comest_bayes.injection.make_truth` call whose ``injection.density`` is 0
+#: (automatic), and the base of the run's automatic choice (:func:`comest_bayes.preflight.choose_density`).
+PUBLISHED_DENSITY = 15.0
 
 #: Random close packing of discs fills at most ~54.7% of the plane (random sequential
 #: adsorption jamming limit, Feder 1980); dart throwing stalls well before that.

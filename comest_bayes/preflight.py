@@ -5,6 +5,15 @@
 cannot give an answer is refused with the reason instead of writing files and
 failing later:
 
+* :func:`choose_density` -- how many injections per realization: the user's
+  density, or (``injection.density = 0``, the default) one chosen per kind from
+  the image: the published 15 per arcmin^2 where it gives at least
+  :data:`TARGET_PER_REALIZATION`; on a small field of fine pixels raised towards
+  that target but to at most :data:`PER_BACKGROUND_MESH` per background mesh
+  (more biases the background, hence m50) and half of what random packing
+  holds at the minimum separation; lowered to that packing where 15 is more
+  (coarse pixels).  :func:`budget_warnings` says when a kind's expected usable
+  injections stay under :data:`FEW_USABLE_INJECTIONS`.
 * :func:`check_injection_count` -- can the injections give usable outcomes at
   all?  An injection is *usable* when its centre is unmasked and its whole
   stamp lies on the image (:mod:`comest_bayes.recovery`).  The stamp of a
@@ -34,12 +43,19 @@ from dataclasses import dataclass
 import numpy as np
 
 from .errors import ConfigError, InputError
+from .placement import PUBLISHED_DENSITY as _PUBLISHED_DENSITY
 
-__all__ = ["MIN_USABLE_INJECTIONS", "SMALLEST_SEEING_PIX", "InjectionBudget", "stamp_half_size", "injection_budget",
-           "check_injection_count", "injection_memory", "available_memory", "check_memory"]
+__all__ = ["MIN_USABLE_INJECTIONS", "FEW_USABLE_INJECTIONS", "SMALLEST_SEEING_PIX", "PUBLISHED_DENSITY",
+           "TARGET_PER_REALIZATION", "PER_BACKGROUND_MESH", "HOLD_FRACTION", "DensityChoice", "choose_density",
+           "choose_densities", "InjectionBudget", "stamp_half_size", "injection_budget", "check_injection_count",
+           "budget_warnings", "injection_memory", "available_memory", "check_memory"]
 
 #: Fewest expected usable injections per kind (all realizations together) a run accepts.
 MIN_USABLE_INJECTIONS = 10
+#: Below this many expected usable injections per kind (all realizations together) a run warns that
+#: its m50 will be loose: with 100 outcomes spread over 6.5 mag the 0.2-mag bins at the transition
+#: hold about 3 each.
+FEW_USABLE_INJECTIONS = 100
 #: A seeing wider than this (arcsec) given with --fwhm is questioned in the messages.
 IMPLAUSIBLE_SEEING_ARCSEC = 5.0
 #: Seeing (pixels) assumed when it cannot be measured, to tell an image too small for any injection.
@@ -48,6 +64,131 @@ SMALLEST_SEEING_PIX = 2.0
 STAMP_FLUX_FRACTION = 0.995
 #: Random sequential packing of discs stalls near this covered fraction (Feder 1980).
 JAMMING_COVERAGE = 0.547
+
+#: ComEst's published injection density, per arcmin^2 (re-exported from :mod:`comest_bayes.placement`).
+PUBLISHED_DENSITY = _PUBLISHED_DENSITY
+#: Mean injections per realization the automatic density aims for where the published density gives fewer.
+TARGET_PER_REALIZATION = 100.0
+#: Most injections per background mesh (``detection.back_size`` squared pixels) the automatic density
+#: raises to.  The published density gives 0.7-1.2 per 64-pixel mesh at ground-based pixel scales
+#: (0.20-0.26"/px), which left m50 unbiased on the 200x200 DECam cutouts (-0.05 mag); 4.6 per mesh
+#: (60 per arcmin^2 there) lifted the background meshes and moved m50 0.2 mag bright.
+PER_BACKGROUND_MESH = 1.0
+#: Fraction of the random-packing count at the minimum separation (``JAMMING_COVERAGE``) the automatic
+#: density fills at most: dart throwing still places every injection there without stalling.
+HOLD_FRACTION = 0.5
+
+
+@dataclass(frozen=True)
+class DensityChoice:
+    """How many injections of one kind a realization asks for, and why.
+
+    Attributes
+    ----------
+    kind : str
+    density : float
+        Injections per arcmin^2 used (``per_realization / area_arcmin2``).
+    per_realization : float
+        Mean injections per realization (the Poisson mean).
+    source : {"user", "automatic"}
+    rule : str
+        ``user`` (the density given), ``published`` (the published density is enough),
+        ``raised`` (the published density gives fewer than the target: raised up to the target, the
+        background cap and what the placement holds) or ``placement cap`` (the published density is
+        more than the placement holds: lowered to it).
+    reason : str
+        One sentence for the log and the report.
+    area_arcmin2, published, target, mesh_cap, hold_cap : float
+        The image's area, the count the published density gives, the target, one per background
+        mesh and what the placement holds (inf without a minimum separation), per realization.
+    min_sep_pix : float
+    """
+
+    kind: str
+    density: float
+    per_realization: float
+    source: str
+    rule: str
+    reason: str
+    area_arcmin2: float
+    published: float
+    target: float
+    mesh_cap: float
+    hold_cap: float
+    min_sep_pix: float
+
+    def to_dict(self) -> dict:
+        d = dict(self.__dict__)
+        d["hold_cap"] = d["hold_cap"] if math.isfinite(d["hold_cap"]) else None
+        return d
+
+
+def choose_density(kind: str, *, shape, pixel_scale: float, fwhm_pix: float | None, injection,
+                   back_size: int = 64) -> DensityChoice:
+    """The injection density of ``kind`` on an image: the user's, or chosen from the image.
+
+    With ``injection.density > 0`` that density is kept.  With 0 (automatic), counted per
+    realization on the whole image of area ``A``:
+
+    * ``published = PUBLISHED_DENSITY x A``;
+    * ``mesh_cap = PER_BACKGROUND_MESH x npix / back_size^2``: injections lift the background
+      meshes of the detection run on each realization, biasing m50 bright;
+    * ``hold_cap = HOLD_FRACTION x JAMMING_COVERAGE x npix / (pi r^2 / 4)``, ``r`` the kind's
+      minimum separation (:func:`comest_bayes.injection.min_separation_pix`): what the placement
+      holds without the injections blending with each other;
+    * the count is ``hold_cap`` when ``published`` exceeds it (coarse pixels, wide separations);
+      else ``published`` when it reaches ``TARGET_PER_REALIZATION`` (large images: the published
+      density unchanged); else ``max(published, min(TARGET_PER_REALIZATION, mesh_cap, hold_cap))``
+      (small fields of fine pixels, e.g. 1.6 per realization on a 640x640 JWST image at 0.031"/px).
+
+    ``fwhm_pix`` None (the seeing not yet known) takes a point source's separation as 0.
+    """
+    from .injection import min_separation_pix
+
+    ny, nx = (int(v) for v in shape)
+    npix = nx * ny
+    area = npix * (pixel_scale / 60.0) ** 2
+    r = float(min_separation_pix(injection, fwhm_pix, pixel_scale, kind))
+    hold = HOLD_FRACTION * JAMMING_COVERAGE * npix / (math.pi * r * r / 4.0) if r > 0 else math.inf
+    published = PUBLISHED_DENSITY * area
+    mesh = PER_BACKGROUND_MESH * npix / float(back_size) ** 2
+    facts = dict(kind=kind, area_arcmin2=area, published=published, target=TARGET_PER_REALIZATION,
+                 mesh_cap=mesh, hold_cap=hold, min_sep_pix=r)
+    if injection.density > 0:
+        n = injection.density * area
+        return DensityChoice(density=float(injection.density), per_realization=n, source="user", rule="user",
+                             reason=f"{injection.density:g} per arcmin^2 as given ({n:.1f} per realization)", **facts)
+    held = f"{hold:.1f} held by the placement at the {r:.1f} px minimum separation" if r > 0 else ""
+    if published > hold:
+        n, rule = hold, "placement cap"
+        why = (f"the published {PUBLISHED_DENSITY:g} per arcmin^2 would ask for {published:.0f} per realization, "
+               f"more than the placement holds: lowered to the {held}")
+    elif published >= TARGET_PER_REALIZATION:
+        n, rule = published, "published"
+        why = (f"the published {PUBLISHED_DENSITY:g} per arcmin^2, {n:.0f} per realization (at least the "
+               f"target of {TARGET_PER_REALIZATION:g})")
+    else:
+        n = max(published, min(TARGET_PER_REALIZATION, mesh, hold))
+        limits = [f"the target {TARGET_PER_REALIZATION:g}", f"{mesh:.1f} (one per {back_size}x{back_size} "
+                  f"background mesh)"] + ([held] if held else [])
+        if n == published:
+            rule = "published"
+            why = (f"the published {PUBLISHED_DENSITY:g} per arcmin^2, {n:.1f} per realization (no fewer than the "
+                   f"smallest of {', '.join(limits)})")
+        else:
+            rule = "raised"
+            why = (f"the published {PUBLISHED_DENSITY:g} per arcmin^2 gives only {published:.1f} per realization on "
+                   f"this {nx}x{ny} image; raised to {n:.1f}, the smallest of {', '.join(limits)}")
+    return DensityChoice(density=n / area, per_realization=n, source="automatic", rule=rule,
+                         reason=f"{n / area:.4g} per arcmin^2, automatic: {why}", **facts)
+
+
+def choose_densities(*, shape, pixel_scale: float, fwhm_pix: float | None, injection,
+                     back_size: int = 64) -> dict:
+    """:func:`choose_density` for every kind of ``injection.kinds``: ``{kind: DensityChoice}``."""
+    return {kind: choose_density(kind, shape=shape, pixel_scale=pixel_scale, fwhm_pix=fwhm_pix,
+                                 injection=injection, back_size=back_size) for kind in injection.kinds}
+
 
 # Memory model of one realization, measured on this package's code (tracemalloc and peak RSS):
 #: bytes per image pixel held by a worker (image, mask and noise copies, the rendered image,
@@ -120,32 +261,41 @@ def _inner_unmasked(mask: np.ndarray, half: int) -> int:
 
 
 def injection_budget(kind: str, *, shape, mask, pixel_scale: float, fwhm_pix: float, injection,
-                     stamp_half: int | None = None) -> InjectionBudget:
-    """Expected injections of ``kind`` per realization on an image (see the module docstring)."""
+                     stamp_half: int | None = None, density: float | None = None) -> InjectionBudget:
+    """Expected injections of ``kind`` per realization on an image (see the module docstring).
+
+    ``density`` (per arcmin^2) overrides ``injection.density`` (e.g. the automatic choice of
+    :func:`choose_density`); an automatic ``injection.density`` of 0 without it counts at the
+    published density.
+    """
     from .injection import min_separation_pix
 
+    density = float(density if density is not None else (injection.density or PUBLISHED_DENSITY))
     ny, nx = (int(v) for v in shape)
     npix = nx * ny
     area = npix * (pixel_scale / 60.0) ** 2
-    requested = injection.density * area
+    requested = density * area
     r = float(min_separation_pix(injection, fwhm_pix, pixel_scale, kind))
     placeable = JAMMING_COVERAGE * npix / (math.pi * r * r / 4.0) if r > 0 else math.inf
     half = stamp_half if stamp_half is not None else stamp_half_size(injection, fwhm_pix, pixel_scale)
     mask = np.zeros((ny, nx), bool) if mask is None else np.asarray(mask, bool)
     inner = _inner_unmasked(mask, half) / npix
-    return InjectionBudget(kind=kind, density=float(injection.density), requested=requested, placeable=placeable, min_sep_pix=r, stamp_half=half,
+    return InjectionBudget(kind=kind, density=density, requested=requested, placeable=placeable, min_sep_pix=r, stamp_half=half,
                            inner_fraction=inner, usable_per_realization=min(requested, placeable) * inner)
 
 
 def check_injection_count(*, shape, mask, pixel_scale: float, fwhm_pix: float | None, injection,
-                          fwhm_given: bool = False, fwhm_assumed: bool = False) -> list[InjectionBudget]:
+                          fwhm_given: bool = False, fwhm_assumed: bool = False,
+                          densities: dict | None = None) -> list[InjectionBudget]:
     """Refuse a run whose injections cannot give :data:`MIN_USABLE_INJECTIONS` usable outcomes per kind.
 
     With ``fwhm_pix=None`` (the seeing not yet measured) only the count
     without stamps is checked: density x unmasked area x realizations.
     ``fwhm_given`` (the user's ``--fwhm``) adds a hint when the seeing is
     implausibly wide; ``fwhm_assumed`` words the message for a seeing assumed
-    because it could not be measured.
+    because it could not be measured.  ``densities`` maps each kind to its
+    density per arcmin^2 or its :class:`DensityChoice`; by default
+    :func:`choose_densities` on the image (the user's density when given).
 
     Returns
     -------
@@ -161,10 +311,17 @@ def check_injection_count(*, shape, mask, pixel_scale: float, fwhm_pix: float | 
     mask = np.zeros((ny, nx), bool) if mask is None else np.asarray(mask, bool)
     unmasked_area = float(np.count_nonzero(~mask)) * (pixel_scale / 60.0) ** 2
     nsims = int(injection.nsims)
-    upper = injection.density * unmasked_area * nsims
-    if upper < MIN_USABLE_INJECTIONS:
+    if densities is None:
+        densities = choose_densities(shape=(ny, nx), pixel_scale=pixel_scale, fwhm_pix=fwhm_pix, injection=injection)
+    chosen = {k: (v.density if isinstance(v, DensityChoice) else float(v)) for k, v in densities.items()}
+    density = max(chosen.values())
+    upper = density * unmasked_area * nsims
+    # (an automatic density lowered to what the placement holds at a known seeing is judged per kind below,
+    # where the message can say why)
+    if upper < MIN_USABLE_INJECTIONS and (fwhm_pix is None or injection.density > 0):
+        how = "" if injection.density > 0 else " (chosen automatically: at most one per background mesh)"
         raise InputError(
-            f"too few injections possible: {injection.density:g} per arcmin^2 on this image's "
+            f"too few injections possible: {density:.4g} per arcmin^2{how} on this image's "
             f"{unmasked_area:.4g} arcmin^2 of unmasked area ({nx}x{ny} pixels of {pixel_scale:.3g}\") over "
             f"{nsims} realization(s) is {upper:.1f} injections per kind, and at least {MIN_USABLE_INJECTIONS} "
             f"usable ones are needed. Raise --nsims or --density, or use a larger image.")
@@ -174,7 +331,7 @@ def check_injection_count(*, shape, mask, pixel_scale: float, fwhm_pix: float | 
     half = stamp_half_size(injection, fwhm_pix, pixel_scale)
     for kind in injection.kinds:
         b = injection_budget(kind, shape=(ny, nx), mask=mask, pixel_scale=pixel_scale, fwhm_pix=fwhm_pix,
-                             injection=injection, stamp_half=half)
+                             injection=injection, stamp_half=half, density=chosen[kind])
         budgets.append(b)
         total = b.usable_per_realization * nsims
         if total >= MIN_USABLE_INJECTIONS:
@@ -202,11 +359,29 @@ def check_injection_count(*, shape, mask, pixel_scale: float, fwhm_pix: float | 
                    f"so lower injection.min_sep")
         raise InputError(
             f"too few usable {kind} injections expected: {total:.1f} over {nsims} realization(s) "
-            f"({b.requested:.1f} asked for per realization at {injection.density:g} per arcmin^2{cap}; "
+            f"({b.requested:.1f} asked for per realization at {b.density:.4g} per arcmin^2{cap}; "
             f"{stamp}, and only {100 * b.inner_fraction:.0f}% of the pixels are unmasked and at least {half} px "
             f"from the edges), and at least {MIN_USABLE_INJECTIONS} are needed. Raise --nsims or --density, or use "
             f"a larger image.")
     return budgets
+
+
+def budget_warnings(budgets, nsims: int) -> list[str]:
+    """Warnings for kinds whose expected usable injections, all realizations together, stay under
+    :data:`FEW_USABLE_INJECTIONS` (the run goes on; its m50 will be loose)."""
+    out = []
+    for b in budgets:
+        total = b.usable_per_realization * int(nsims)
+        if total >= FEW_USABLE_INJECTIONS:
+            continue
+        held = (f"; only about {b.placeable:.1f} fit per realization at the {b.min_sep_pix:.0f} px minimum "
+                f"separation" if b.placeable < b.requested else "")
+        need = math.ceil(FEW_USABLE_INJECTIONS / max(b.usable_per_realization, 1e-9))
+        out.append(f"only about {total:.0f} usable {b.kind} injections expected over {nsims} realization(s) "
+                   f"({b.placed:.1f} per realization{held}; {100 * b.inner_fraction:.0f}% of the pixels lie far "
+                   f"enough from the edges for a point-source stamp, fewer for a galaxy's): its completeness will "
+                   f"be loose. About {need} realizations would give {FEW_USABLE_INJECTIONS} (--nsims).")
+    return out
 
 
 def injection_memory(budgets, *, npix: int, nsims: int, workers: int) -> float:

@@ -154,7 +154,9 @@ CASES = [
     ("set_negative_thresh", [RUN, "{in}/good.fits", "--thresh", "-1"], 2, "invalid detection.thresh = -1.0"),
     ("nsims_zero", [RUN, "{in}/good.fits", "--nsims", "0"], 2, "invalid injection.nsims = 0"),
     ("nsims_negative", [RUN, "{in}/good.fits", "--nsims", "-3"], 2, "invalid injection.nsims = -3"),
-    ("density_zero", [RUN, "{in}/good.fits", "--density", "0"], 2, "invalid injection.density = 0.0"),
+    # (--density 0 is the automatic density, the default; not a number is refused)
+    ("density_nan", [RUN, "{in}/good.fits", "--density", "nan"], 2, "invalid injection.density = nan"),
+    ("density_inf", [RUN, "{in}/good.fits", "--density", "inf"], 2, "invalid injection.density = inf"),
     ("density_negative", [RUN, "{in}/good.fits", "--density", "-5"], 2, "invalid injection.density = -5.0"),
     ("unknown_kind", [RUN, "{in}/good.fits", "--kinds", "point,galaxy"], 2, "invalid injection.kinds"),
     ("unknown_model", [RUN, "{in}/good.fits", "--model", "no_such_model"], 2, "no_such_model"),

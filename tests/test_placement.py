@@ -133,3 +133,85 @@ def test_zero_and_invalid_inputs():
     with warnings.catch_warnings():
         warnings.simplefilter("error")
         place_sources(5, (50, 50), np.random.default_rng(0), min_sep_pix=2.0)  # no warning when it fits
+
+
+# --------------------------------------------------------------------------- the automatic density
+# comest_bayes.preflight.choose_density: known image sizes give known counts per realization.
+
+def _choice(kind, shape, pixel_scale, fwhm_pix, back_size=64, **injection):
+    from comest_bayes.config import InjectionConfig
+    from comest_bayes.preflight import choose_density
+
+    return choose_density(kind, shape=shape, pixel_scale=pixel_scale, fwhm_pix=fwhm_pix,
+                          injection=InjectionConfig(**injection), back_size=back_size)
+
+
+def _half_jamming(npix, sep_pix):
+    # half of random sequential packing (54.7% covered by discs of diameter sep_pix)
+    return 0.5 * 0.547 * npix / (np.pi * sep_pix ** 2 / 4.0)
+
+
+def test_auto_density_raises_a_small_fine_pixel_field_to_the_target():
+    # The shared JWST cutout: 640x640 at 0.0308"/px is 0.1079 arcmin^2, 1.6 injections per
+    # realization at 15 per arcmin^2.  Point sources (FWHM 2.46 px, 9.84 px apart) are raised to
+    # the target of 100 (100 background meshes of 64x64, 1473 held by the placement).
+    c = _choice("point", (640, 640), 0.0308, 2.46)
+    area = 640 * 640 * (0.0308 / 60) ** 2
+    assert c.source == "automatic" and c.rule == "raised"
+    assert c.published == pytest.approx(15 * area)
+    assert c.per_realization == pytest.approx(100.0)
+    assert c.density == pytest.approx(100.0 / area)  # 926.5 per arcmin^2
+    assert c.hold_cap == pytest.approx(_half_jamming(640 * 640, 4 * 2.46))
+    # Galaxies need 8 x 0.75" = 6" = 194.8 px apart: the placement holds only 3.8 per realization.
+    g = _choice("buldisk", (640, 640), 0.0308, 2.46)
+    assert g.per_realization == pytest.approx(_half_jamming(640 * 640, 6.0 / 0.0308))
+    assert 3.7 < g.per_realization < 3.9 and g.rule == "raised"
+
+
+def test_auto_density_is_capped_at_one_injection_per_background_mesh():
+    # 320x320 at 0.05"/px: 1.07 per realization at 15 per arcmin^2, 25 meshes of 64x64
+    c = _choice("point", (320, 320), 0.05, 3.0)
+    assert c.per_realization == pytest.approx(25.0) and c.mesh_cap == pytest.approx(25.0)
+    assert "one per 64x64 background mesh" in c.reason
+    # smaller meshes (detection.back_size 32) allow four times as many
+    assert _choice("point", (320, 320), 0.05, 3.0, back_size=32).per_realization == pytest.approx(100.0)
+
+
+def test_auto_density_keeps_the_published_density_where_it_is_enough():
+    # the 3000x3000 demo tile at 0.26"/px: 2535 per realization >= the target
+    c = _choice("point", (3000, 3000), 0.26, 3.5)
+    assert c.rule == "published" and c.density == 15.0 and c.per_realization == pytest.approx(15 * 13.0 ** 2)
+    # a 200x200 DECam cutout at 0.262"/px: 11.4 per realization, already more than one per mesh (9.8)
+    d = _choice("point", (200, 200), 0.262, 4.0)
+    assert d.rule == "published" and d.density == 15.0
+    assert d.per_realization == pytest.approx(15 * (200 * 0.262 / 60) ** 2) and d.mesh_cap < d.per_realization
+
+
+def test_auto_density_is_lowered_to_what_the_placement_holds_on_coarse_pixels():
+    # the 2MASS field: 720x721 at 5"/px is 3605 arcmin^2, 54075 per realization at 15 per arcmin^2;
+    # point sources of FWHM 1.5 px, 6 px apart: half of random packing is 5021
+    c = _choice("point", (721, 720), 5.0, 1.5)
+    assert c.rule == "placement cap"
+    assert c.per_realization == pytest.approx(_half_jamming(721 * 720, 6.0))
+    assert 5000 < c.per_realization < 5050
+    assert c.density == pytest.approx(c.per_realization / (721 * 720 * (5.0 / 60) ** 2))
+
+
+def test_a_density_the_user_sets_is_kept():
+    c = _choice("point", (640, 640), 0.0308, 2.46, density=400.0)
+    assert c.source == "user" and c.rule == "user" and c.density == 400.0
+    assert c.per_realization == pytest.approx(400.0 * 640 * 640 * (0.0308 / 60) ** 2)
+
+
+def test_an_unresolved_automatic_density_draws_at_the_published_density():
+    # a bare make_truth call with the default (automatic) density draws Poisson(15 x area)
+    from comest_bayes.config import InjectionConfig
+    from comest_bayes.injection import make_truth
+
+    config = InjectionConfig(kinds=("point",), mag_range=(20.0, 24.0))
+    assert config.density == 0.0
+    counts = [len(make_truth("point", shape=(600, 600), pixel_scale=0.5, fwhm_pix=3.0, config=config,
+                             rng=np.random.default_rng(s), zeropoint=30.0)) for s in range(40)]
+    mean = 15.0 * (600 * 0.5 / 60) ** 2  # 375
+    # 40 Poisson draws of mean 375: the sample mean has sd 3.1; 4 sd
+    assert abs(np.mean(counts) - mean) < 4 * np.sqrt(mean / 40)

@@ -12,12 +12,13 @@ about 12 s.
 
 To stay affordable every run injects point sources only (``--kinds point``), fits no model
 (``--model none``) and uses a few realizations; the small DECam cutouts get more of them so that
-their few injections per realization (about 8 at the default density of 15 per arcmin^2) add up to
-~400.  ``--density`` is raised only on the JWST field, whose 0.11 arcmin^2 hold 1.6 injections per
-realization at the default (the run refuses and says to raise it).  Raising it on the 200 x 200
-DECam cutouts instead biases m50 bright: at 60 per arcmin^2 (45 injections on 40 000 pixels) the
-bright injections lift SEP's 64-pixel background meshes and m50 fell 0.20-0.26 mag below the
-prediction (g, r), against -0.05/-0.04 at the default density.
+their few injections per realization (about 11 at the published density of 15 per arcmin^2, which
+the automatic density keeps there) add up to ~400-550.  No run sets ``--density``: on the JWST
+field, whose 0.11 arcmin^2 hold 1.6 injections per realization at 15 per arcmin^2, the run raises
+it to 100 per realization itself (one per 64-pixel background mesh; ``preflight.choose_density``).
+Raising it further is what biases m50: at 60 per arcmin^2 on the 200 x 200 DECam cutouts (45
+injections on 40 000 pixels, 4.6 per mesh) the bright injections lift SEP's background meshes and
+m50 fell 0.20-0.26 mag below the prediction (g, r), against -0.05/-0.04 at 15 per arcmin^2.
 
 What each uncrowded image must show:
 
@@ -105,7 +106,7 @@ class Case:
     facts: tuple = ()                                # options a user must give (from the data README)
     extras: tuple = ()                               # weight map, mask (relative paths after the option)
     nsims: int = 4
-    options: tuple = ()                              # affordability options (density), with the reason above
+    options: tuple = ()                              # other options (none in CASES: only what a user knows)
     zeropoint: float | None = None                   # the zero point the run must end up with
     zeropoint_from: str = ""                         # ... and where it must say it came from
     size_check: bool = False                         # enough stars for the run's 5% size check
@@ -123,10 +124,11 @@ CASES = [
     Case("kids_r", "kids/kidsviking_waves_2600px_r.fits", facts=("--pixel-scale", "0.2", "--zp", "0"),
          nsims=3, zeropoint=0.0, zeropoint_from="--zp", size_check=True),
     # MJy/sr with PIXAR_SR: the zero point follows (28.03); the error map is the rms weight.  Two
-    # stars in the field and no seeing keyword: the README's FWHM (2.46 px) is given.
+    # stars in the field and no seeing keyword: the README's FWHM (2.46 px) is given.  The automatic
+    # density asks for 100 point sources per realization (927 per arcmin^2).
     Case("jwst_f200w", "jwst/jwst_nircam_f200w_a2744_glass_sci.fits", facts=("--fwhm", "2.46"),
          extras=(("--weight", "jwst/jwst_nircam_f200w_a2744_glass_err.fits"), ("--weight-type", None)),
-         nsims=15, options=("--density", "400"), zeropoint=28.03, zeropoint_from="BUNIT"),
+         nsims=6, zeropoint=28.03, zeropoint_from="BUNIT"),
     # Header MAGZERO per image unit and the header FWHM (pixels); weight (ivar) and mask files.
     _decam("g_S10_200px", 50, zeropoint=29.787, zeropoint_from="MAGZERO"),
     _decam("r_S10_200px", 50, zeropoint=30.212, zeropoint_from="MAGZERO"),
@@ -227,6 +229,12 @@ def test_real_image_runs_and_its_point_source_m50_is_where_the_noise_predicts(ca
     assert 0.0 <= m5 - probit <= 0.7 + PROBIT_TOL, (case.name, m5, probit)
 
     # the decisions, with where each came from, in run.json
+    choice = state["injection_density"]["point"]  # nobody gave --density: the run chose
+    assert choice["source"] == "automatic" and choice["reason"]
+    if case.name == "jwst_f200w":  # 1.6 per realization at 15 per arcmin^2, raised to the target
+        assert choice["rule"] == "raised" and choice["per_realization"] == pytest.approx(100.0), choice
+    else:  # at least one per background mesh already: the published density
+        assert choice["rule"] == "published" and choice["density"] == 15.0, choice
     image = state["image"]
     assert image["zeropoint"] == pytest.approx(case.zeropoint, abs=0.01)
     assert case.zeropoint_from in image["provenance"]["zeropoint"], image["provenance"]["zeropoint"]
