@@ -282,9 +282,16 @@ def simulated_image(run: RunData, kind: str, index: int = 0, *, prefer_saved: bo
     wcs = None
     header = fits.getheader(base_path)
     if facts.get("wcs"):
-        from astropy.wcs import WCS
+        import warnings
 
-        wcs = WCS(header, relax=True)
+        from astropy.wcs import WCS, FITSFixedWarning
+
+        # The run's copy of the image's header: astropy's fixes to it (e.g. 'obsfix' setting OBSGEO-B/L/H
+        # on JWST) were judged when the run read the image (comest_bayes.image: harmless ones dropped, the
+        # others a warning line in the run's log), so they are not repeated on the terminal here.
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", FITSFixedWarning)
+            wcs = WCS(header, relax=True)
     choice = (run.summary or {}).get("psf") or run.state.get("psf") or {}  # the run's injection PSF
     psf = make_psf(config.injection, float(facts["fwhm_pix"]), float(facts["pixel_scale_arcsec"]),
                    beta=choice.get("beta"), pixel_integrated=bool(choice.get("pixel_integrated", False)))
