@@ -608,9 +608,13 @@ class LFModel:
     def hessian(self, theta) -> np.ndarray:
         return np.array(self._hess(jnp.asarray(theta, dtype=jnp.float64), self._data))
 
-    def initial(self, ndraws: int = 600) -> np.ndarray:
+    def initial(self, ndraws: int | None = None) -> np.ndarray:
         """Best of ``ndraws`` prior draws of the shape parameters, each with its normalisation set so that
-        the expected number equals the observed one (the first parameter is the log10 normalisation)."""
+        the expected number equals the observed one (the first parameter is the log10 normalisation).
+
+        Default 600 draws, 200 for a per-object joint model (each costs an objects x grid evaluation; the
+        shape parameters of a count model are few)."""
+        ndraws = ndraws or (200 if self._per_object else 600)
         rng = self._rng
         draws = self.counts.prior_draws(ndraws, rng)
         tail = self._prior_mean if self.joint else np.zeros(0)
@@ -958,9 +962,9 @@ def fit_counts(inputs: LFInputs, counts, *, mode: str = "joint", post=None, f_fi
         mu = post.samples.mean(axis=0)
         cov = np.cov(post.samples, rowvar=False).reshape(len(mu), len(mu))
         model = LFModel(counts, inputs, post=post, prior_mean=mu, prior_cov=cov, seed=seed)
-        # three MAP starts: initial() sits at the completeness prior's mean, where the joint MAP is near;
-        # six (the default) cost a minute on a demo tile for the same optimum
-        res = fit(model, seed=int_seed_for(seed, "lf", "joint"), nstarts=3, min_ess=min_ess, max_steps=max_steps,
+        # two MAP starts (as each fit of the marginal mode): initial() sits at the completeness prior's mean,
+        # near the joint MAP; six (the default) cost a minute on a demo tile for the same optimum
+        res = fit(model, seed=int_seed_for(seed, "lf", "joint"), nstarts=2, min_ess=min_ess, max_steps=max_steps,
                   sampler=sampler)
         draws = res.draws()
         samples, comp_samples = draws[:, :counts.ndim], draws[:, counts.ndim:]
