@@ -43,6 +43,7 @@ else:  # pragma: no cover - exercised on Python 3.10 only
     import tomli as tomllib
 
 from .errors import ConfigError
+from .jsonio import jsonable
 
 __all__ = [
     "AdaptiveConfig",
@@ -536,7 +537,7 @@ class RunConfig:
 
     def to_dict(self) -> dict:
         """Plain-JSON form (tuples become lists), as written to ``run.json``."""
-        return _jsonable(dataclasses.asdict(self))
+        return jsonable(dataclasses.asdict(self))
 
     def replace(self, **sections) -> "RunConfig":
         return dataclasses.replace(self, **sections)
@@ -549,14 +550,6 @@ _SECTIONS = {"detection": DetectionConfig, "sourcefree": SourceFreeConfig, "inje
 def _check(ok: bool, key: str, value: Any, expected: str) -> None:
     if not ok:
         raise ConfigError(f"invalid {key} = {value!r}: expected {expected}.")
-
-
-def _jsonable(obj):
-    if isinstance(obj, dict):
-        return {k: _jsonable(v) for k, v in obj.items()}
-    if isinstance(obj, (list, tuple)):
-        return [_jsonable(v) for v in obj]
-    return obj
 
 
 def _coerce(section: str, name: str, default: Any, value: Any) -> Any:

@@ -37,6 +37,7 @@ from .checks import shape_check, shape_warning
 from .config import RunConfig
 from .errors import InputError
 from .inference import fit, fit_map
+from .jsonio import dumps
 from .likelihood import CompletenessModel, compress_for, covariate_warnings, covariates_from_outcomes
 from .modelspec import load_spec, resolve_candidates
 from .posterior import (CompletenessPosterior, Footprint, FootprintHistogram, average_crossings, average_prob,
@@ -506,18 +507,6 @@ def fit_outcome_file(path, out, *, kind: str = "injections", model: str = "auto"
     ax.set_title(f"{kind}: {len(table)} injections from {path.name}")
     (out / "figures").mkdir(exist_ok=True)
     save_figure(ax.figure, out / "figures" / f"{kind}_completeness")
-    import json
-
     with atomic_path(out / "summary.json") as tmp:
-        tmp.write_text(json.dumps(summary, indent=2, default=_json_default) + "\n")
+        tmp.write_text(dumps(summary, indent=2, fallback=str) + "\n")
     return summary
-
-
-def _json_default(obj):
-    if isinstance(obj, np.integer):
-        return int(obj)
-    if isinstance(obj, np.floating):
-        return float(obj) if np.isfinite(obj) else None
-    if isinstance(obj, np.ndarray):
-        return obj.tolist()
-    return str(obj)

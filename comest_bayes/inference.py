@@ -69,6 +69,7 @@ import numpy as np
 from scipy.optimize import minimize
 
 from .errors import InputError
+from .jsonio import json_float
 from .psis import psis_log_weights
 from .seeding import int_seed_for, rng_for
 
@@ -179,11 +180,6 @@ class LaplaceResult:
         return np.sqrt(np.diag(self.cov))
 
 
-def _json_float(x):
-    x = float(x)
-    return x if math.isfinite(x) else None
-
-
 @dataclass
 class PosteriorDiagnostics:
     """Convergence diagnostics of :func:`sample_posterior`.
@@ -235,17 +231,17 @@ class PosteriorDiagnostics:
         """JSON-ready dict (lists of floats; non-finite numbers become ``None``)."""
         return {
             "names": list(self.names),
-            "tau": [_json_float(t) for t in self.tau],
-            "ess": [_json_float(e) for e in self.ess],
-            "acceptance_mean": _json_float(self.acceptance_mean),
-            "acceptance_min": _json_float(self.acceptance_min),
+            "tau": [json_float(t) for t in self.tau],
+            "ess": [json_float(e) for e in self.ess],
+            "acceptance_mean": json_float(self.acceptance_mean),
+            "acceptance_min": json_float(self.acceptance_min),
             "nsteps": int(self.nsteps),
             "burn": int(self.burn),
             "nwalkers": int(self.nwalkers),
-            "min_ess": _json_float(self.min_ess),
+            "min_ess": json_float(self.min_ess),
             "converged": bool(self.converged),
             "warnings": list(self.warnings),
-            "seconds": _json_float(self.seconds),
+            "seconds": json_float(self.seconds),
         }
 
 
@@ -820,10 +816,10 @@ class ImportanceDiagnostics:
         return getattr(self, key)
 
     def to_dict(self) -> dict:
-        return {"method": self.method, "khat": _json_float(self.khat), "ess": _json_float(self.ess),
+        return {"method": self.method, "khat": json_float(self.khat), "ess": json_float(self.ess),
                 "ndraws": int(self.ndraws), "nout": int(self.nout), "df": float(self.df),
-                "min_ess": _json_float(self.min_ess), "converged": bool(self.converged),
-                "warnings": list(self.warnings), "seconds": _json_float(self.seconds)}
+                "min_ess": json_float(self.min_ess), "converged": bool(self.converged),
+                "warnings": list(self.warnings), "seconds": json_float(self.seconds)}
 
 
 def _t_draws(model, mean, cov, df, ndraws, rng):

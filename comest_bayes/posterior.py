@@ -39,6 +39,7 @@ from pathlib import Path
 import numpy as np
 
 from .errors import InputError
+from .jsonio import dumps
 from .likelihood import BinomialData, CompletenessModel, Covariates
 from .modelspec import ModelSpec, spec_from_mapping
 
@@ -626,16 +627,16 @@ class CompletenessPosterior:
         spec_d.pop("source", None)
         if not spec_d.get("candidates"):
             spec_d.pop("candidates", None)
-        spec = json.dumps(_jsonable(spec_d))
+        spec = dumps(spec_d)
         with atomic_path(path) as tmp:
             with open(tmp, "wb") as fh:
                 np.savez_compressed(
                     fh, samples=self.samples, names=np.array(self.names), spec=np.array(spec),
-                    meta=np.array(json.dumps(_jsonable(self.meta))),
+                    meta=np.array(dumps(self.meta)),
                     noise_grid=np.array([]) if self.noise_grid is None else self.noise_grid,
                     grid_step=np.array(self.grid_step), footprint=self.footprint,
                     wcs_header=np.array(self.wcs_header or ""),
-                    diagnostics=np.array(json.dumps(_jsonable(self.diagnostics))),
+                    diagnostics=np.array(dumps(self.diagnostics)),
                     **(self.cells.to_arrays() if self.cells is not None else {}))
         return path
 
@@ -657,15 +658,3 @@ class CompletenessPosterior:
                        diagnostics=json.loads(str(z["diagnostics"])), cells=Footprint.from_arrays(z))
 
 
-def _jsonable(obj):
-    if isinstance(obj, dict):
-        return {str(k): _jsonable(v) for k, v in obj.items()}
-    if isinstance(obj, (list, tuple)):
-        return [_jsonable(v) for v in obj]
-    if isinstance(obj, np.ndarray):
-        return _jsonable(obj.tolist())
-    if isinstance(obj, (np.integer,)):
-        return int(obj)
-    if isinstance(obj, (np.floating, float)):
-        return None if not np.isfinite(obj) else float(obj)
-    return obj

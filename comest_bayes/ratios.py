@@ -77,6 +77,7 @@ from astropy.wcs import WCS, Sip
 from scipy.special import ndtri
 
 from .errors import InputError
+from .jsonio import jsonable
 
 __all__ = [
     "BinnedRatio",
@@ -154,13 +155,13 @@ class BinnedRatio:
             "quantity": self.quantity,
             "confidence": float(self.confidence),
             "interval": self.interval,
-            "edges": _json_list(self.edges),
-            "centers": _json_list(self.centers),
+            "edges": _floats(self.edges),
+            "centers": _floats(self.centers),
             "n": [int(v) for v in self.n],
             "k": [int(v) for v in self.k],
-            "ratio": _json_list(self.ratio),
-            "lower": _json_list(self.lower),
-            "upper": _json_list(self.upper),
+            "ratio": _floats(self.ratio),
+            "lower": _floats(self.lower),
+            "upper": _floats(self.upper),
         }
 
     def to_table(self) -> Table:
@@ -231,8 +232,9 @@ class RatioMaps:
         return tuple(self.n.shape[1:])
 
 
-def _json_list(values) -> list:
-    return [None if not np.isfinite(v) else float(v) for v in np.asarray(values, dtype=float)]
+def _floats(values) -> list:
+    """JSON-ready list of floats (None where not finite)."""
+    return jsonable(np.asarray(values, dtype=float))
 
 
 # --------------------------------------------------------------------------

@@ -45,6 +45,7 @@ import numpy as np
 from astropy.io import fits
 
 from .errors import OutputWriteError, RunDirectoryError
+from .jsonio import dumps
 
 __all__ = ["RunDirectory", "atomic_path", "file_checksum", "versions", "check_writable", "os_reason",
            "lock_holder"]
@@ -227,18 +228,6 @@ def _diff(a, b, prefix=""):
     return [] if a == b else [prefix.rstrip(".")]
 
 
-def _json_default(obj):
-    if isinstance(obj, (np.integer,)):
-        return int(obj)
-    if isinstance(obj, (np.floating,)):
-        return float(obj)
-    if isinstance(obj, np.ndarray):
-        return obj.tolist()
-    if isinstance(obj, Path):
-        return str(obj)
-    raise TypeError(f"not JSON serialisable: {type(obj).__name__}")
-
-
 class RunDirectory:
     """A run's output directory.
 
@@ -252,7 +241,7 @@ class RunDirectory:
 
     def __init__(self, path, fingerprint: dict):
         self.path = Path(path)
-        self.fingerprint = json.loads(json.dumps(fingerprint, default=_json_default))
+        self.fingerprint = json.loads(dumps(fingerprint))
         self.resumed = False
         self._state: dict = {}
         self._locked = False
@@ -432,11 +421,11 @@ class RunDirectory:
 
     def _save(self) -> None:
         with atomic_path(self.path / RUN_FILE) as tmp:
-            tmp.write_text(json.dumps(self._state, indent=2, default=_json_default) + "\n")
+            tmp.write_text(dumps(self._state, indent=2) + "\n")
 
     def update(self, **items) -> None:
         """Set top-level entries of ``run.json`` (e.g. ``image=...``) and save."""
-        self._state.update(json.loads(json.dumps(items, default=_json_default)))
+        self._state.update(json.loads(dumps(items)))
         self._save()
 
     def stage_done(self, stage: str) -> bool:
@@ -452,7 +441,7 @@ class RunDirectory:
     def record_stage(self, stage: str, *, files=(), seconds: float = 0.0, **info) -> None:
         """Mark ``stage`` done with its output files, wall time and extra facts."""
         entry = {"status": "done", "files": [str(f) for f in files], "seconds": round(float(seconds), 3)}
-        entry.update(json.loads(json.dumps(info, default=_json_default)))
+        entry.update(json.loads(dumps(info)))
         self._state.setdefault("stages", {})[stage] = entry
         self._save()
 
@@ -481,5 +470,5 @@ class RunDirectory:
 
     def write_json(self, name: str, obj) -> str:
         with atomic_path(self.file(name)) as tmp:
-            tmp.write_text(json.dumps(obj, indent=2, default=_json_default) + "\n")
+            tmp.write_text(dumps(obj, indent=2) + "\n")
         return name
