@@ -61,6 +61,7 @@ import numpy as np
 
 HERE = Path(__file__).resolve().parent
 sys.path.insert(0, str(HERE.parent))
+sys.path.insert(1, str(HERE))
 
 SCENES = {
     "white": {"truth": "logistic", "gradient": 0.0, "chip_gap": False},
@@ -167,7 +168,7 @@ def _binom99(n: int, p: float) -> list:
     return [float(binom.ppf(0.005, n, p) / n), float(binom.ppf(0.995, n, p) / n)]
 
 
-def summarise(raw: dict, scenes) -> dict:
+def summarise(raw: dict, scenes, truths: dict | None = None) -> dict:
     out = {}
     for sc in scenes:
         uni = sorted((r for k, r in raw["uniform"].items() if k.startswith(sc + "|")), key=lambda r: r["n"])
@@ -187,7 +188,10 @@ def summarise(raw: dict, scenes) -> dict:
             nu = _needed(u_n, u_m50 if what == "m50" else u_curve, level)
             na = _needed(a_n, a_m50 if what == "m50" else a_curve, level)
             needed[name] = {"uniform_binned": nu, "adaptive": na,
-                            "ratio": None if nu is None or na is None else nu / na}
+                            "ratio": None if nu is None or na is None else nu / na,
+                            # reached at the first adaptive step: the adaptive N is an upper bound, the ratio a
+                            # lower bound
+                            "at_first_step": na is not None and na <= a_n[0]}
         # coverage at the first step whose half-width reaches 0.01 mag
         hits68, hits95 = [], []
         for r in ada:
@@ -197,7 +201,7 @@ def summarise(raw: dict, scenes) -> dict:
                 hits95.append(s["cover95"])
         nrep = len(hits68)
         out[sc] = {
-            "truth": SCENES[sc]["truth"], "replicates": len(ada),
+            "truth": (truths or {}).get(sc) or SCENES[sc]["truth"], "replicates": len(ada),
             "uniform": {"n": u_n, "m50_rmse": u_m50, "curve_rmse": u_curve},
             "adaptive": {"n": a_n, "m50_rmse": a_m50, "curve_rmse": a_curve, "cpu_fit_cumulative": a_cpu,
                          "models": sorted({s["model"] for r in ada for s in r["steps"]})},
@@ -211,14 +215,16 @@ def summarise(raw: dict, scenes) -> dict:
     return out
 
 
-def chart(summary: dict, path: Path) -> None:
+def chart(summary: dict, path: Path, cpu: bool = False) -> None:
+    """RMSE of m50 and of the curve against injections (and, with ``cpu``, m50 RMSE against CPU seconds)."""
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
     scenes = list(summary)
-    fig, axes = plt.subplots(2, len(scenes), figsize=(5 * len(scenes), 8), squeeze=False)
+    rows = 3 if cpu else 2
+    fig, axes = plt.subplots(rows, len(scenes), figsize=(5 * len(scenes), 4 * rows), squeeze=False)
     for j, sc in enumerate(scenes):
         s = summary[sc]
         for i, (key, label, lines) in enumerate((("m50_rmse", "RMSE of m50 (mag)", (0.02, 0.01)),
@@ -237,9 +243,44 @@ def chart(summary: dict, path: Path) -> None:
                     "n/a" if nd[k]["ratio"] is None else f"{nd[k]['ratio']:.1f}" for k in nd) + "\n"
                     "(m50 0.02, m50 0.01, curve 0.01)", fontsize=9)
             ax.legend(fontsize=7)
+        if cpu:
+            ax = axes[2, j]
+            ax.loglog(s["uniform"]["cpu"], s["uniform"]["m50_rmse"], "s-", color="0.3", label="uniform + binned")
+            ax.loglog(s["adaptive"]["cpu"], s["adaptive"]["m50_rmse"], "o-", color="tab:red",
+                      label="adaptive (refits included)")
+            for y in (0.02, 0.01):
+                ax.axhline(y, color="k", lw=0.6, ls=":")
+            ax.set_xlabel("CPU seconds (injection + detection + fits)")
+            ax.set_ylabel("RMSE of m50 (mag)")
+            ax.grid(alpha=0.3, which="both")
+            ax.legend(fontsize=7)
     fig.tight_layout()
     fig.savefig(path, dpi=110)
     plt.close(fig)
+
+
+def _run_tasks(tasks, funcs: dict, raw: dict, raw_path: Path, workers: int) -> None:
+    """Run ``(kind, task)`` pairs in ``workers`` processes; keep every result in ``raw`` (saved after each)."""
+    import multiprocessing
+    from concurrent.futures import ProcessPoolExecutor, as_completed
+
+    with ProcessPoolExecutor(max_workers=workers, mp_context=multiprocessing.get_context("spawn")) as pool:
+        futures = {pool.submit(funcs[kind], t): (kind, t) for kind, t in tasks}
+        for i, fut in enumerate(as_completed(futures), 1):
+            kind, t = futures[fut]
+            res = fut.result()
+            raw[kind][t["key"]] = res
+            tmp = raw_path.with_name(".tmp-" + raw_path.name)
+            tmp.write_text(json.dumps(raw))
+            os.replace(tmp, raw_path)
+            if kind == "adaptive" and res["steps"]:
+                last = res["steps"][-1]
+                err = last["m50_err"] if "m50_err" in last else next(iter(last["scores"].values()))["m50_err"]
+                print(f"[{i}/{len(tasks)}] adaptive {t['key']}: {last['n']} injections, m50 err "
+                      f"{err:+.4f} +- {last['halfwidth']:.4f}, {res['wall']:.0f} s"
+                      + (f"; pool share used up: {res['exhausted']}" if res.get("exhausted") else ""), flush=True)
+            else:
+                print(f"[{i}/{len(tasks)}] uniform {t['key']}", flush=True)
 
 
 def main(argv=None) -> int:
@@ -252,8 +293,41 @@ def main(argv=None) -> int:
     p.add_argument("--target", default="m50", choices=["m50", "curve"])
     p.add_argument("--workers", type=int, default=2)
     p.add_argument("--seed", type=int, default=16)
-    p.add_argument("--out", default=str(HERE / "results" / "adaptive"))
+    p.add_argument("--out", default=None, help="results folder (default results/adaptive, or "
+                   "results/adaptive_pool with --pool)")
+    g = p.add_argument_group("real outcome pools (--pool)")
+    g.add_argument("--pool", default=None, metavar="RUN_DIR",
+                   help="a finished uniform-magnitude point-source injection run: both methods draw its real "
+                        "outcomes instead of synthetic ones (replaces --scenes)")
+    g.add_argument("--pool-name", default=None, help="scene name for the results (default: RUN_DIR's name)")
+    g.add_argument("--closed-form", action="store_true",
+                   help="the pool is bench_speed_accuracy's analytic white-noise scene: its closed-form curve "
+                        "is the primary reference")
+    g.add_argument("--no-holdout", action="store_true",
+                   help="use the whole pool for replicates (only with --closed-form; no held-out reference)")
+    g.add_argument("--pilot", type=int, default=1000, help="uniform pilot of every adaptive run")
+    g.add_argument("--min-batch", type=int, default=250, help="smallest adaptive batch")
+    g.add_argument("--build-pool", choices=["analytic", "demo"], default=None,
+                   help="build a pool under --work with --nsims realizations (bench_speed_accuracy's scenes), "
+                        "then run on it")
+    g.add_argument("--work", default=None, help="folder for --build-pool")
+    g.add_argument("--nsims", type=int, default=40, help="realizations of --build-pool")
     a = p.parse_args(argv)
+    for name in ("reps", "cap", "pilot", "min_batch", "workers", "nsims"):
+        if getattr(a, name) < 1:
+            raise SystemExit(f"error: --{name.replace('_', '-')} must be a positive integer, got {getattr(a, name)}.")
+    if a.no_holdout and not a.closed_form:
+        raise SystemExit("error: --no-holdout leaves no reference without --closed-form.")
+    if a.build_pool:
+        if not a.work:
+            raise SystemExit("error: --build-pool needs --work DIR.")
+        a.pool = str(build_pool_cli(a.build_pool, Path(a.work), a.nsims, a.workers, 11))
+    if a.pool:
+        if a.out is None:
+            a.out = str(HERE / "results" / "adaptive_pool")
+        return run_pool(a)
+    if a.out is None:
+        a.out = str(HERE / "results" / "adaptive")
     out = Path(a.out)
     out.mkdir(parents=True, exist_ok=True)
     settings = {"seed": a.seed, "cap": a.cap, "precision": a.precision, "target": a.target}
@@ -280,26 +354,8 @@ def main(argv=None) -> int:
                 tasks.append(("adaptive", {"key": key, "scene": sc, "scene_seed": scene_seed, "cap": a.cap,
                                            "precision": a.precision, "target": a.target,
                                            "seed": int_seed_for(a.seed, "adaptive", sc, rep)}))
-    import multiprocessing
-    from concurrent.futures import ProcessPoolExecutor, as_completed
-
     t0 = time.perf_counter()
-    with ProcessPoolExecutor(max_workers=a.workers, mp_context=multiprocessing.get_context("spawn")) as pool:
-        futures = {pool.submit(uniform_task if kind == "uniform" else adaptive_task, t): (kind, t)
-                   for kind, t in tasks}
-        for i, fut in enumerate(as_completed(futures), 1):
-            kind, t = futures[fut]
-            res = fut.result()
-            raw[kind][t["key"]] = res
-            tmp = raw_path.with_name(".tmp-" + raw_path.name)
-            tmp.write_text(json.dumps(raw))
-            os.replace(tmp, raw_path)
-            if kind == "adaptive":
-                last = res["steps"][-1]
-                print(f"[{i}/{len(tasks)}] adaptive {t['key']}: {last['n']} injections, m50 err "
-                      f"{last['m50_err']:+.4f} +- {last['halfwidth']:.4f}, {res['wall']:.0f} s", flush=True)
-            else:
-                print(f"[{i}/{len(tasks)}] uniform {t['key']}", flush=True)
+    _run_tasks(tasks, {"uniform": uniform_task, "adaptive": adaptive_task}, raw, raw_path, a.workers)
     summary = summarise(raw, a.scenes)
     report = {"settings": settings, "wall_seconds": time.perf_counter() - t0, "scenes": summary}
     (out / "adaptive.json").write_text(json.dumps(report, indent=1))
@@ -311,6 +367,372 @@ def main(argv=None) -> int:
               + f"; coverage at half-width 0.01: 68% {s['coverage_at_0.01']['cov68']}, "
                 f"95% {s['coverage_at_0.01']['cov95']} ({s['coverage_at_0.01']['replicates']} replicates)")
     print(f"wrote {out / 'adaptive.json'} and {out / 'adaptive.png'}")
+    return 0
+
+
+# --------------------------------------------------------------------------- real outcome pools
+
+
+def build_pool_cli(scene: str, work: Path, nsims: int, workers: int, seed: int) -> Path:
+    """Inject and detect a pool with :mod:`bench_speed_accuracy`'s scenes; return its run directory."""
+    import bench_speed_accuracy as SA
+
+    work.mkdir(parents=True, exist_ok=True)
+    if scene == "analytic":
+        sc = SA.analytic_scene(work, size=2048, sigma=1.0, fwhm_pix=3.0, zeropoint=30.0, pixel_scale=0.2, seed=seed)
+        density = 50.0
+    elif scene == "demo":
+        sc = SA.demo_scene(work, size=3000, seed=seed)
+        density = 60.0
+    else:
+        raise SystemExit(f"error: --build-pool takes analytic or demo, not {scene!r}.")
+    run_dir = work / f"{scene}_run"
+    pool = SA.build_pool(sc, run_dir, nsims=nsims, density=density, seed=seed, workers=workers,
+                         log=lambda s: None)
+    print(f"pool of {len(pool['outcomes'])} injections in {run_dir} ({pool['wall']:.0f} s wall)", flush=True)
+    return run_dir
+
+
+POOL_MAX_UNIFORM_REPS = 200
+_POOLS: dict = {}
+
+
+class PoolExhausted(RuntimeError):
+    """A design asked for more injections in one magnitude bin than a replicate's share of the pool holds."""
+
+
+def load_pool(run_dir) -> dict:
+    """A finished injection run's point outcomes, noise map, mask, range and CPU per injection (cached)."""
+    from astropy.io import fits
+    from astropy.table import Table
+
+    run_dir = Path(run_dir)
+    key = str(run_dir.resolve())
+    if key in _POOLS:
+        return _POOLS[key]
+    need = [run_dir / "catalogs" / "point_outcomes.fits", run_dir / "run.json", run_dir / "summary.json",
+            run_dir / "noise.fits", run_dir / "mask.fits"]
+    missing = [str(f) for f in need if not f.exists()]
+    if missing:
+        raise SystemExit(f"error: {run_dir} is not a finished point-source injection run: missing "
+                         + ", ".join(missing) + " (build one with --build-pool analytic|demo).")
+    t = Table.read(need[0])
+    state = json.loads(need[1].read_text())
+    summary = json.loads(need[2].read_text())
+    point = summary["kinds"]["point"]
+    lo, hi = (float(v) for v in state["stages"]["baseline"]["mag_range"])
+    cols = {c: np.asarray(t[c]) for c in ("mag", "detected", "x", "y", "noise", "realization")}
+    cols["detected"] = cols["detected"].astype(bool)
+    pool = {"run_dir": str(run_dir), "cols": cols, "lo": lo, "hi": hi,
+            "noise": fits.getdata(need[3]).astype(np.float32), "mask": fits.getdata(need[4]).astype(bool),
+            # CPU seconds of a realization (process time of inject + detect + match) per usable injection
+            "cpu_per_injection": float(point["seconds"]["cpu"]) / max(int(point["counts"]["usable"]), 1),
+            "state": state, "summary": summary}
+    _POOLS[key] = pool
+    return pool
+
+
+def pool_split(pool: dict, seed: int, holdout: bool):
+    """``(held, uniform_order, adaptive_order)``: the held-out third (realizations 0, 3, 6, ...) when
+    ``holdout``, and two seeded permutations of the rest from which replicates take disjoint slices."""
+    from comest_bayes.seeding import rng_for
+
+    real = pool["cols"]["realization"]
+    held = (real % 3 == 0) if holdout else np.zeros(real.size, bool)
+    rest = np.flatnonzero(~held)
+    return (held, rng_for(seed, "pool", "uniform").permutation(rest),
+            rng_for(seed, "pool", "adaptive").permutation(rest))
+
+
+class PoolSampler:
+    """Outcomes for designed magnitudes taken from a uniform-magnitude pool, without reuse.
+
+    A design is piecewise constant on its bins and uniform within each, and so
+    is a pool of uniform magnitudes; so for each requested magnitude an unused
+    pool injection from the same design bin, taken in a seeded random order,
+    has exactly the design's distribution, with its real position and real
+    detection outcome.  The requested magnitude's position inside the bin (an
+    independent uniform draw) is replaced by the pool injection's own.
+    """
+
+    def __init__(self, mags, indices, edges, seed: int):
+        from comest_bayes.seeding import rng_for
+
+        self.edges = np.asarray(edges, float)
+        idx = np.asarray(indices)
+        b = np.clip(np.searchsorted(self.edges, mags[idx], side="right") - 1, 0, self.edges.size - 2)
+        rng = rng_for(seed, "pool-sampler")
+        self.queues = [rng.permutation(idx[b == j]) for j in range(self.edges.size - 1)]
+        self.used = np.zeros(self.edges.size - 1, int)
+
+    def take(self, mags) -> np.ndarray:
+        b = np.clip(np.searchsorted(self.edges, np.asarray(mags, float), side="right") - 1, 0, self.edges.size - 2)
+        want = np.bincount(b, minlength=self.used.size)
+        have = np.array([q.size for q in self.queues])
+        short = np.flatnonzero(self.used + want > have)
+        if short.size:
+            j = int(short[0])
+            raise PoolExhausted(f"bin {self.edges[j]:.3f}-{self.edges[j + 1]:.3f} mag needs {self.used[j] + want[j]} "
+                                f"pool injections, the replicate's share holds {have[j]}")
+        out = np.empty(b.size, int)
+        for j in np.flatnonzero(want):
+            where = np.flatnonzero(b == j)
+            out[where] = self.queues[j][self.used[j]:self.used[j] + want[j]]
+            self.used[j] += want[j]
+        return out
+
+
+def pool_references(pool: dict, held: np.ndarray, closed_form: bool) -> dict:
+    """The references: the held-out pool's binned curve (0.05 mag) and, with ``closed_form``, the analytic one.
+
+    Each is ``{"grid", "curve", "var", "m50", "m50_var", "source"}`` on the comparison grid (``GRID_STEP``):
+    ``var`` is the reference's own binomial variance per grid point (0 for the closed form) and ``m50_var``
+    the variance of its m50 (bootstrap over the held-out injections), so that reference noise can be
+    taken out of a mean squared error (the held-out set is disjoint from every replicate).
+    """
+    from comest_bayes import ratios as R
+
+    lo, hi = pool["lo"], pool["hi"]
+    grid = np.arange(lo, hi + 1e-9, GRID_STEP)
+    refs = {}
+    if held.any():
+        mag, det = pool["cols"]["mag"][held], pool["cols"]["detected"][held]
+        edges = R.magnitude_edges(lo, hi, 0.05)
+        br = R.binned_ratio(mag, det, edges)
+        n = np.asarray(br.n, float)
+        ok = n > 0
+        centers = 0.5 * (edges[:-1] + edges[1:])
+        f = np.asarray(br.ratio, float)
+        var = np.where(ok, f * (1 - f) / np.maximum(n, 1), np.nan)
+        rng = np.random.default_rng(0)
+        boot = []
+        for _ in range(100):
+            pick = rng.integers(0, mag.size, mag.size)
+            boot.append(R.magnitude_at(R.binned_ratio(mag[pick], det[pick], edges), 0.5))
+        refs["held-out pool"] = {"grid": grid, "curve": np.interp(grid, centers[ok], f[ok]),
+                                 "var": np.interp(grid, centers[ok], var[ok]), "m50": float(R.magnitude_at(br, 0.5)),
+                                 "m50_var": float(np.nanvar(boot, ddof=1)),
+                                 "source": f"binned ratio (0.05 mag) of the {int(held.sum())} held-out injections"}
+    if closed_form:
+        import bench_speed_accuracy as SA
+
+        cfg = pool["state"]["fingerprint"]["config"]["detection"]
+        meta = pool["state"]["stages"]["detect"]["meta"]
+        facts = {"zeropoint": float(meta["zeropt"]),
+                 "fwhm_pix": float(pool["state"]["fingerprint"]["input"]["options"]["fwhm"])}
+        det_cfg = type("Detection", (), {"filter": cfg["filter"], "thresh": float(cfg["thresh"])})
+        r = SA.analytic_reference(facts, (lo, hi), det_cfg, float(np.median(pool["noise"])))
+        refs["closed form"] = {"grid": grid, "curve": np.interp(grid, r["grid"], r["curve"]),
+                               "var": np.zeros(grid.size), "m50": float(r["m50"]), "m50_var": 0.0,
+                               "source": r["source"]}
+    return refs
+
+
+def _ref_scores(refs: dict, m50_hat: float, grid_hat, curve_hat) -> dict:
+    """m50 error and curve RMS error (reference between 0.1 and 0.9) against every reference."""
+    out = {}
+    for name, r in refs.items():
+        win = (r["curve"] >= 0.1) & (r["curve"] <= 0.9)
+        est = np.interp(r["grid"][win], grid_hat, curve_hat)
+        out[name] = {"m50_err": float(m50_hat - r["m50"]) if np.isfinite(m50_hat) else float("nan"),
+                     "curve_rms": float(np.sqrt(np.mean((est - r["curve"][win]) ** 2)))}
+    return out
+
+
+def _pool_context(task: dict):
+    key = (str(Path(task["pool"]).resolve()), task["split_seed"], task["holdout"], task["closed_form"])
+    if key not in _POOLS:
+        pool = load_pool(task["pool"])
+        held, perm_u, perm_a = pool_split(pool, task["split_seed"], task["holdout"])
+        _POOLS[key] = (pool, perm_u, perm_a, pool_references(pool, held, task["closed_form"]))
+    return _POOLS[key]
+
+
+def pool_uniform_task(task: dict) -> dict:
+    """The published method at one N on disjoint slices of the pool: errors against every reference."""
+    from comest_bayes import synthetic as S
+
+    pool, perm_u, _, refs = _pool_context(task)
+    c = pool["cols"]
+    n = task["n"]
+    nrep = min(POOL_MAX_UNIFORM_REPS, perm_u.size // n)
+    scores, cpu = [], 0.0
+    for rep in range(nrep):
+        sub = perm_u[rep * n:(rep + 1) * n]
+        c0 = time.process_time()
+        b = S.binned_estimate({"mag": c["mag"][sub], "detected": c["detected"][sub]}, mag_bin=0.1,
+                              mag_range=(pool["lo"], pool["hi"]))
+        cpu += time.process_time() - c0
+        m50 = np.nan if b.m50 is None or not np.isfinite(b.m50) else float(b.m50)
+        g = refs[next(iter(refs))]["grid"]
+        scores.append(_ref_scores(refs, m50, g, b.curve(g)))
+    return {"key": task["key"], "n": n, "replicates": nrep, "scores": scores,
+            "cpu_binning": cpu / max(nrep, 1)}
+
+
+def pool_adaptive_task(task: dict) -> dict:
+    """One adaptive replicate fed by its own disjoint share of the pool: the errors after every batch."""
+    from comest_bayes import runtime
+
+    runtime.configure(threads=1)
+    from astropy.table import Table
+
+    from comest_bayes.adaptive import AdaptiveSettings, package_fitter, run_sequential
+    from comest_bayes.design import uniform_design
+
+    pool, _, perm_a, refs = _pool_context(task)
+    c = pool["cols"]
+    lo, hi = pool["lo"], pool["hi"]
+    share = perm_a.size // task["reps"]
+    part = perm_a[task["rep"] * share:(task["rep"] + 1) * share]
+    sampler = PoolSampler(c["mag"], part, uniform_design(lo, hi).edges, task["seed"])
+    fitter = package_fitter(image_shape=pool["noise"].shape, noise=pool["noise"], mask=pool["mask"], lo=lo, hi=hi,
+                            seed=task["seed"])
+    steps = []
+    primary = task["primary"]
+
+    def fit(table, k):
+        c0 = time.process_time()
+        view, post = fitter(table, k)
+        cpu = time.process_time() - c0
+        ok = np.isfinite(view.m50)
+        q = (np.percentile(view.m50[ok], [2.275, 15.865, 50, 84.135, 97.725]) if ok.mean() >= 0.5
+             else [np.nan] * 5)
+        sc = _ref_scores(refs, q[2], view.grid, np.median(view.curves, axis=0))
+        m_ref = refs[primary]["m50"]
+        steps.append({"n": len(table), "scores": sc, "halfwidth": view.m50_halfwidth,
+                      "cover68": bool(q[1] <= m_ref <= q[3]), "cover95": bool(q[0] <= m_ref <= q[4]),
+                      "cpu_fit": cpu, "model": post[1]["name"],
+                      "within06": float(np.mean(np.abs(np.asarray(table["mag"]) - m_ref) <= 0.6))})
+        return view, post
+
+    def simulate(mags, k):
+        rows = sampler.take(mags)
+        return Table({name: c[name][rows] for name in ("mag", "detected", "x", "y", "noise")})
+
+    settings = AdaptiveSettings(precision=task["precision"], pilot=task["pilot"], growth=0.5,
+                                min_batch=task["min_batch"], max_injections=task["cap"], target=task["target"])
+    t0 = time.perf_counter()
+    exhausted = None
+    try:
+        run_sequential(simulate, fit, lo, hi, settings, seed=task["seed"])
+    except PoolExhausted as e:
+        exhausted = str(e)
+    have = np.array([q.size for q in sampler.queues])
+    return {"key": task["key"], "steps": steps, "wall": time.perf_counter() - t0, "exhausted": exhausted,
+            "share": int(share), "peak_bin_use": float(np.max(sampler.used / np.maximum(have, 1)))}
+
+
+def _pool_raw_view(raw: dict, ref: str) -> dict:
+    """The pool results against one reference, in the layout :func:`summarise` reads."""
+    view = {"uniform": {}, "adaptive": {}}
+    for k, r in raw["uniform"].items():
+        view["uniform"][k] = {"n": r["n"], "replicates": r["replicates"],
+                              "m50_err": [s[ref]["m50_err"] for s in r["scores"]],
+                              "curve_rms": [s[ref]["curve_rms"] for s in r["scores"]]}
+    for k, r in raw["adaptive"].items():
+        view["adaptive"][k] = {"steps": [{**{kk: vv for kk, vv in s.items() if kk != "scores"},
+                                          "m50_err": s["scores"][ref]["m50_err"],
+                                          "curve_rms": s["scores"][ref]["curve_rms"]} for s in r["steps"]]}
+    return view
+
+
+def summarise_pool(raw: dict, scene: str, refs: dict, cpu_per_injection: float) -> dict:
+    """Per reference: the summary of :func:`summarise` plus CPU per method and, for a noisy reference,
+    RMSEs with the reference's own variance taken out."""
+    out = {}
+    for ref, r in refs.items():
+        s = summarise(_pool_raw_view(raw, ref), [scene], truths={scene: "real outcomes"}).get(scene)
+        if s is None:
+            continue
+        uni = sorted(raw["uniform"].values(), key=lambda v: v["n"])
+        s["uniform"]["replicates"] = [v["replicates"] for v in uni]
+        s["uniform"]["cpu"] = [v["n"] * cpu_per_injection + v["cpu_binning"] for v in uni]
+        s["adaptive"]["cpu"] = [n * cpu_per_injection + f for n, f in zip(s["adaptive"]["n"],
+                                                                            s["adaptive"]["cpu_fit_cumulative"])]
+        ada = list(raw["adaptive"].values())
+        s["adaptive"]["exhausted"] = sum(a["exhausted"] is not None for a in ada)
+        s["adaptive"]["within06"] = [float(np.mean([a["steps"][j]["within06"] for a in ada]))
+                                     for j in range(len(s["adaptive"]["n"]))]
+        s["reference"] = {"m50": r["m50"], "m50_sd": math.sqrt(r["m50_var"]), "source": r["source"]}
+        if r["m50_var"] > 0 or np.any(r["var"] > 0):
+            win = (r["curve"] >= 0.1) & (r["curve"] <= 0.9)
+            vc = float(np.mean(r["var"][win]))
+            s["reference"]["curve_rms_sd"] = math.sqrt(vc)
+            deb = lambda v, w: [float(np.sqrt(max(x * x - w, 0.0))) for x in v]
+            s["debiased"] = {"uniform": {"m50_rmse": deb(s["uniform"]["m50_rmse"], r["m50_var"]),
+                                         "curve_rmse": deb(s["uniform"]["curve_rmse"], vc)},
+                             "adaptive": {"m50_rmse": deb(s["adaptive"]["m50_rmse"], r["m50_var"]),
+                                          "curve_rmse": deb(s["adaptive"]["curve_rmse"], vc)}}
+            nd = {}
+            for name, (what, level) in TARGETS.items():
+                key = "m50_rmse" if what == "m50" else "curve_rmse"
+                nu = _needed(s["uniform"]["n"], s["debiased"]["uniform"][key], level)
+                na = _needed(s["adaptive"]["n"], s["debiased"]["adaptive"][key], level)
+                nd[name] = {"uniform_binned": nu, "adaptive": na,
+                            "ratio": None if nu is None or na is None else nu / na}
+            s["debiased"]["needed"] = nd
+        out[ref] = s
+    return out
+
+
+def run_pool(a) -> int:
+    """``--pool RUN_DIR``: both methods on real injection outcomes (see the module docstring)."""
+    run_dir = Path(a.pool)
+    pool = load_pool(run_dir)
+    scene = a.pool_name or run_dir.name.removesuffix("_run")
+    out = Path(a.out)
+    out.mkdir(parents=True, exist_ok=True)
+    settings = {"pool": str(run_dir.resolve()), "seed": a.seed, "cap": a.cap, "precision": a.precision,
+                "target": a.target, "reps": a.reps, "pilot": a.pilot, "min_batch": a.min_batch,
+                "holdout": not a.no_holdout, "closed_form": a.closed_form}
+    raw_path = out / f"raw_{scene}.json"
+    raw = {"settings": settings, "uniform": {}, "adaptive": {}}
+    if raw_path.exists():
+        raw = json.loads(raw_path.read_text())
+        if raw["settings"] != settings:
+            raise SystemExit(f"error: {raw_path} holds other settings {raw['settings']}; use another --out.")
+    from comest_bayes.seeding import int_seed_for
+
+    held, perm_u, perm_a = pool_split(pool, a.seed, settings["holdout"])
+    refs = pool_references(pool, held, a.closed_form)
+    if not refs:
+        raise SystemExit("error: no reference: keep the held-out third or pass --closed-form.")
+    primary = "closed form" if a.closed_form else "held-out pool"
+    print(f"{scene}: pool of {held.size} injections over {pool['lo']:.2f}-{pool['hi']:.2f} mag, {int(held.sum())} "
+          f"held out; {perm_a.size // a.reps} per adaptive replicate; CPU {1e3 * pool['cpu_per_injection']:.3f} ms "
+          "per injection; reference m50 " + ", ".join(f"{k} {r['m50']:.4f}" for k, r in refs.items()), flush=True)
+    base = {"pool": str(run_dir), "split_seed": a.seed, "holdout": settings["holdout"],
+            "closed_form": a.closed_form}
+    tasks = []
+    for n in UNIFORM_N:
+        key = f"{scene}|{n}"
+        if n <= perm_u.size and key not in raw["uniform"]:
+            tasks.append(("uniform", {**base, "key": key, "n": n}))
+    for rep in range(a.reps):
+        key = f"{scene}|{rep}"
+        if key not in raw["adaptive"]:
+            tasks.append(("adaptive", {**base, "key": key, "rep": rep, "reps": a.reps, "cap": a.cap,
+                                       "precision": a.precision, "target": a.target, "pilot": a.pilot,
+                                       "min_batch": a.min_batch, "primary": primary,
+                                       "seed": int_seed_for(a.seed, "adaptive", scene, rep)}))
+    _run_tasks(tasks, {"uniform": pool_uniform_task, "adaptive": pool_adaptive_task}, raw, raw_path, a.workers)
+    summary = summarise_pool(raw, scene, refs, pool["cpu_per_injection"])
+    report = {"settings": settings, "scene": scene, "primary_reference": primary,
+              "pool_injections": int(held.size), "held_out": int(held.sum()),
+              "mag_range": [pool["lo"], pool["hi"]], "cpu_per_injection": pool["cpu_per_injection"],
+              "references": summary}
+    (out / f"adaptive_{scene}.json").write_text(json.dumps(report, indent=1))
+    chart({f"{scene} vs {k}": v for k, v in summary.items()}, out / f"adaptive_{scene}.png", cpu=True)
+    for ref, s in summary.items():
+        print(f"{scene} vs {ref}: injections needed uniform+binned / adaptive: " + "; ".join(
+            f"{k}: {_fmt(v['uniform_binned'])} / {_fmt(v['adaptive'])} = x{_fmt(v['ratio'], '.1f')}"
+            for k, v in s["needed"].items()), flush=True)
+        if "debiased" in s:
+            print(f"  reference noise taken out: " + "; ".join(
+                f"{k}: {_fmt(v['uniform_binned'])} / {_fmt(v['adaptive'])} = x{_fmt(v['ratio'], '.1f')}"
+                for k, v in s["debiased"]["needed"].items()), flush=True)
+    print(f"wrote {out / f'adaptive_{scene}.json'} and {out / f'adaptive_{scene}.png'}")
     return 0
 
 
