@@ -84,6 +84,11 @@ def test_figure3_has_three_panels_on_one_scale_and_a_legend_per_marked_panel():
     labels = [t.get_text() for t in axes[2].get_legend().get_texts()]
     assert labels == ["recovered (4)", "missed (2)", "false (1)"]
     assert axes[0].get_legend() is not None and axes[1].get_legend() is None
+    # the legends sit under the images, not over their markers
+    renderer = _renderer(fig)
+    for ax in (axes[0], axes[2]):
+        box, panel = ax.get_legend().get_window_extent(renderer), ax.get_window_extent(renderer)
+        assert box.y1 < panel.y0
     # without the observed image the first panel is blank and the scale is the source-free image's
     fig2 = figure3(None, sfi, sim, detections=m("detection", 3), recovered=m("recovered", 4),
                    missed=m("missed", 2), false=m("false", 1))

@@ -137,8 +137,10 @@ def mark(ax, cutout: Cutout, markers: Markers):
 
 
 def _legend(ax):
-    leg = ax.legend(loc="upper right", fontsize=8, framealpha=0.85, facecolor="white", scatterpoints=1)
-    leg.get_frame().set_edgecolor("0.6")
+    """The markers' legend under the panel: over the image it hid the markers of its corner."""
+    from .completeness import outside_legend
+
+    outside_legend(ax, ncol=2)
 
 
 def figure3(observed: Cutout | None, sourcefree: Cutout, simulated: Cutout, *, detections: Markers,
@@ -168,7 +170,7 @@ def figure3(observed: Cutout | None, sourcefree: Cutout, simulated: Cutout, *, d
     -------
     matplotlib.figure.Figure
     """
-    fig = new_figure((15.0, 5.4))
+    fig = new_figure((15.0, 6.0))  # room for the legends under the panels
     axes = fig.subplots(1, 3, sharex=True, sharey=True)
     reference = observed if observed is not None else sourcefree
     norm = image_norm(reference.data, stretch=stretch)
