@@ -17,6 +17,7 @@ import numpy as np
 from matplotlib.figure import Figure
 
 from . import COLORS, new_figure
+from .completeness import outside_legend
 
 __all__ = ["counts_figure", "corner_figure"]
 
@@ -34,7 +35,7 @@ def counts_figure(result, *, truth_phi=None) -> Figure:
     -------
     matplotlib.figure.Figure
     """
-    fig = new_figure((6.4, 7.0))
+    fig = new_figure((6.4, 7.8))
     ax1, ax2 = fig.subplots(2, 1, sharex=True)
     e = np.asarray(result.obs_edges)
     c = 0.5 * (e[:-1] + e[1:])
@@ -49,7 +50,6 @@ def counts_figure(result, *, truth_phi=None) -> Figure:
     ax1.set_yscale("log")
     ax1.set_ylabel("detections per bin")
     ax1.set_title(f"{result.kind} {result.spec.get('name', '')}, mode {result.mode}", fontsize=10)
-    ax1.legend(fontsize=8, loc="upper left")
     g = np.asarray(result.grid)
     p = np.asarray(result.phi_bands)
     lo, hi = result.mag_range
@@ -66,9 +66,13 @@ def counts_figure(result, *, truth_phi=None) -> Figure:
     tw.plot(g, result.fbar_median, color=COLORS["depth"][0], lw=1.0, label="completeness (median)")
     tw.set_ylim(0, 1.05)
     tw.set_ylabel("completeness", color=COLORS["depth"][0])
-    h1, l1 = ax2.get_legend_handles_labels()
-    h2, l2 = tw.get_legend_handles_labels()
-    ax2.legend(h1 + h2, l1 + l2, fontsize=8, loc="upper left")
+    # one legend for both panels, under them: inside, it hid catalog points and the completeness curve
+    handles, labels = [], []
+    for a in (ax1, ax2, tw):
+        h, lab = a.get_legend_handles_labels()
+        handles += h
+        labels += lab
+    outside_legend(ax2, handles, labels, ncol=2)
     ax2.set_xlim(g[0], g[-1])
     return fig
 
