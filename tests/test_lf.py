@@ -292,6 +292,18 @@ def test_run_lf_writes_results_figures_and_summary_entry(fake_run):
     # truth within 3 posterior sd (a calibrated posterior fails this ~0.3% of the time per parameter)
     assert abs(s["slope"]["median"] - 0.3) < 3 * s["slope"]["sd"]
     assert abs(s["log_n"]["median"] - 4.3) < 3 * s["log_n"]["sd"]
+    # the counts figure's legend lies under both panels, over none of their points
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+
+    from comest_bayes.plots.lf import counts_figure
+
+    fig = counts_figure(res)
+    canvas = FigureCanvasAgg(fig)
+    canvas.draw()
+    renderer = canvas.get_renderer()
+    lower = fig.axes[1]
+    assert lower.get_legend().get_window_extent(renderer).y1 < lower.get_window_extent(renderer).y0
+    assert fig.axes[0].get_legend() is None
     back = LFResult.load(out)
     np.testing.assert_array_equal(back.samples, res.samples)
     np.testing.assert_array_equal(back.transfer.density, res.transfer.density)
