@@ -158,6 +158,8 @@ def _needed(ns, rmse, target: float) -> float | None:
     i = int(below[0])
     if i == 0:
         return float(ns[0])
+    if rmse[i] <= 0:  # an RMSE with the reference's noise taken out can reach 0
+        return float(ns[i])
     x0, x1, y0, y1 = np.log(ns[i - 1]), np.log(ns[i]), np.log(rmse[i - 1]), np.log(rmse[i])
     return float(np.exp(x0 + (np.log(target) - y0) * (x1 - x0) / (y1 - y0)))
 
@@ -234,6 +236,9 @@ def chart(summary: dict, path: Path, cpu: bool = False) -> None:
             ax.loglog(s["adaptive"]["n"], s["adaptive"][key], "o-", color="tab:red", label="adaptive + model (auto)")
             for y in lines:
                 ax.axhline(y, color="k", lw=0.6, ls=":")
+            ref_sd = s.get("reference", {}).get("m50_sd" if i == 0 else "curve_rms_sd")
+            if ref_sd:
+                ax.axhline(ref_sd, color="tab:blue", lw=0.8, ls="--", label="the reference's own noise")
             ax.set_xlabel("injections")
             ax.set_ylabel(label)
             ax.grid(alpha=0.3, which="both")
@@ -655,6 +660,14 @@ def summarise_pool(raw: dict, scene: str, refs: dict, cpu_per_injection: float) 
         s["adaptive"]["within06"] = [float(np.mean([a["steps"][j]["within06"] for a in ada]))
                                      for j in range(len(s["adaptive"]["n"]))]
         s["reference"] = {"m50": r["m50"], "m50_sd": math.sqrt(r["m50_var"]), "source": r["source"]}
+        # CPU seconds (injection + detection + every fit) each method needs for each target
+        s["cpu_needed"] = {}
+        for name, (what, level) in TARGETS.items():
+            key = "m50_rmse" if what == "m50" else "curve_rmse"
+            cu = _needed(s["uniform"]["cpu"], s["uniform"][key], level)
+            ca = _needed(s["adaptive"]["cpu"], s["adaptive"][key], level)
+            s["cpu_needed"][name] = {"uniform_binned": cu, "adaptive": ca,
+                                     "ratio": None if cu is None or ca is None else cu / ca}
         if r["m50_var"] > 0 or np.any(r["var"] > 0):
             win = (r["curve"] >= 0.1) & (r["curve"] <= 0.9)
             vc = float(np.mean(r["var"][win]))
@@ -728,6 +741,9 @@ def run_pool(a) -> int:
         print(f"{scene} vs {ref}: injections needed uniform+binned / adaptive: " + "; ".join(
             f"{k}: {_fmt(v['uniform_binned'])} / {_fmt(v['adaptive'])} = x{_fmt(v['ratio'], '.1f')}"
             for k, v in s["needed"].items()), flush=True)
+        print("  CPU seconds needed: " + "; ".join(
+            f"{k}: {_fmt(v['uniform_binned'], '.1f')} / {_fmt(v['adaptive'], '.1f')}" for k, v in s["cpu_needed"].items()),
+              flush=True)
         if "debiased" in s:
             print(f"  reference noise taken out: " + "; ".join(
                 f"{k}: {_fmt(v['uniform_binned'])} / {_fmt(v['adaptive'])} = x{_fmt(v['ratio'], '.1f')}"
