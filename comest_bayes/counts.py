@@ -59,11 +59,7 @@ from typing import Any, Mapping
 
 import numpy as np
 
-import jax
-
-jax.config.update("jax_enable_x64", True)
-
-import jax.numpy as jnp  # noqa: E402
+from .jaxnum import jnp  # float64 on (the one place that sets it)
 
 from .errors import ConfigError  # noqa: E402
 

@@ -89,11 +89,7 @@ from typing import Callable
 
 import numpy as np
 
-import jax
-
-jax.config.update("jax_enable_x64", True)
-
-import jax.numpy as jnp  # noqa: E402
+from .jaxnum import jax, jnp  # float64 on (the one place that sets it)
 
 from .counts import CountModel, load_count_spec  # noqa: E402
 from .errors import ConfigError, InputError, InputFileError  # noqa: E402

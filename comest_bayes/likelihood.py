@@ -85,11 +85,7 @@ from dataclasses import dataclass, field
 from typing import Mapping, NamedTuple
 
 import numpy as np
-import jax
-
-jax.config.update("jax_enable_x64", True)
-
-import jax.numpy as jnp  # noqa: E402
+from .jaxnum import jax, jnp  # float64 on (the one place that sets it)
 from jax.scipy.special import log_ndtr  # noqa: E402
 from scipy import special as _sp  # noqa: E402
 

@@ -185,3 +185,18 @@ def test_a_cycle_through_a_function_level_import_is_found(tmp_path):
     # without the function-level import the cycle is gone
     (pkg / "sub" / "c.py").write_text("import os\n")
     assert cycles(import_graph(pkg)) == []
+
+
+def test_float64_is_switched_on_in_one_place_only():
+    # JAX's precision is process-wide: one module (jaxnum) sets it, the numerics import JAX through it, and the
+    # front door does not import it.
+    import ast
+    from pathlib import Path
+
+    root = Path(__file__).resolve().parents[1] / "comest_bayes"
+    setters = []
+    for path in sorted(root.rglob("*.py")):
+        for node in ast.walk(ast.parse(path.read_text())):
+            if isinstance(node, ast.Constant) and node.value == "jax_enable_x64":
+                setters.append(path.name)
+    assert setters == ["jaxnum.py"]
