@@ -262,9 +262,9 @@ class InjectionConfig:
         0 (default) for automatic, per kind from the image
         (:func:`comest_bayes.preflight.choose_density`): ComEst's published 15,
         raised on a small field of fine pixels towards 100 per realization (at
-        most one per background mesh and half of what random packing holds at
-        the minimum separation), lowered to what the placement holds where 15
-        is more; the choice goes to the log and ``run.json``.
+        most a quarter injection per background mesh and half of what random
+        packing holds at the minimum separation), lowered to what the placement
+        holds where 15 is more; the choice goes to the log and ``run.json``.
     mag_range : tuple of float
         (bright, faint) limits of the uniform magnitude distribution; empty for
         automatic: from the image's 5-sigma point-source depth m5 as

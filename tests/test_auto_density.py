@@ -12,36 +12,36 @@ from comest_bayes.cli import main
 
 @pytest.fixture()
 def fine_small_image(tmp_path):
-    # 320x320 white noise at 0.05"/px: 0.071 arcmin^2, 1.07 injections per realization at the published
-    # 15 per arcmin^2; 25 background meshes of 64x64 pixels.
+    # 640x640 white noise at 0.05"/px: 0.284 arcmin^2, 4.3 injections per realization at the published
+    # 15 per arcmin^2; 100 background meshes of 64x64 pixels.
     rng = np.random.default_rng(5)
     path = tmp_path / "fine.fits"
-    fits.writeto(path, rng.normal(0.0, 1.0, (320, 320)).astype(np.float32))
+    fits.writeto(path, rng.normal(0.0, 1.0, (640, 640)).astype(np.float32))
     return path
 
 
 def _run(image, out, *extra):
     return main(["run", str(image), "--pixel-scale", "0.05", "--zp", "25", "--fwhm", "3", "--kinds", "point",
-                 "--nsims", "4", "--model", "none", "--ncpu", "1", "--seed", "1", "--no-report", "--out", str(out),
+                 "--nsims", "3", "--model", "none", "--ncpu", "1", "--seed", "1", "--no-report", "--out", str(out),
                  *extra])
 
 
-def test_a_small_fine_pixel_image_gets_one_injection_per_background_mesh(fine_small_image, tmp_path, capsys):
+def test_a_small_fine_pixel_image_gets_a_quarter_injection_per_background_mesh(fine_small_image, tmp_path, capsys):
     out = tmp_path / "auto"
     assert _run(fine_small_image, out) == 0
     log = capsys.readouterr().out
     state = json.loads((out / "run.json").read_text())
     choice = state["injection_density"]["point"]
-    area = 320 * 320 * (0.05 / 60) ** 2
+    area = 640 * 640 * (0.05 / 60) ** 2
     assert choice["source"] == "automatic" and choice["rule"] == "raised"
     assert choice["per_realization"] == pytest.approx(25.0) and choice["density"] == pytest.approx(25.0 / area)
-    assert "density: point: " in log and "one per 64x64 background mesh" in log
-    # 4 x 25 = 100 expected, fewer usable (stamps must lie on the image): the run warns
+    assert "density: point: " in log and "0.25 per 64x64 background mesh" in log
+    # 3 x 25 = 75 expected, fewer usable (stamps must lie on the image): the run warns
     assert "warning: density: only about" in log and "usable point injections" in log
     injected = Table.read(out / "catalogs" / "point_injected.fits")
-    # Poisson(25) per realization, 4 realizations: 100 +- 10 in all (3.5 sd); the published density
-    # would have drawn about 4
-    assert abs(len(injected) - 100) <= 35
+    # Poisson(25) per realization, 3 realizations: 75 +- 8.7 in all (3.5 sd); the published density
+    # would have drawn about 13
+    assert abs(len(injected) - 75) <= 30
 
 
 def test_a_density_given_by_the_user_is_kept(fine_small_image, tmp_path, capsys):
@@ -49,9 +49,9 @@ def test_a_density_given_by_the_user_is_kept(fine_small_image, tmp_path, capsys)
     assert _run(fine_small_image, out, "--density", "2000") == 0
     log = capsys.readouterr().out
     choice = json.loads((out / "run.json").read_text())["injection_density"]["point"]
-    area = 320 * 320 * (0.05 / 60) ** 2
+    area = 640 * 640 * (0.05 / 60) ** 2
     assert choice["source"] == "user" and choice["density"] == 2000.0
     assert "2000 per arcmin^2 as given" in log
     injected = Table.read(out / "catalogs" / "point_injected.fits")
-    mean = 4 * 2000.0 * area  # 569
+    mean = 3 * 2000.0 * area  # 1707
     assert abs(len(injected) - mean) <= 3.5 * np.sqrt(mean)

@@ -151,30 +151,32 @@ def _half_jamming(npix, sep_pix):
     return 0.5 * 0.547 * npix / (np.pi * sep_pix ** 2 / 4.0)
 
 
-def test_auto_density_raises_a_small_fine_pixel_field_to_the_target():
+def test_auto_density_raises_a_small_fine_pixel_field_to_a_quarter_injection_per_background_mesh():
     # The shared JWST cutout: 640x640 at 0.0308"/px is 0.1079 arcmin^2, 1.6 injections per
     # realization at 15 per arcmin^2.  Point sources (FWHM 2.46 px, 9.84 px apart) are raised to
-    # the target of 100 (100 background meshes of 64x64, 1473 held by the placement).
+    # a quarter per 64x64 background mesh, 25 (the target is 100, the placement holds 1473).
     c = _choice("point", (640, 640), 0.0308, 2.46)
     area = 640 * 640 * (0.0308 / 60) ** 2
     assert c.source == "automatic" and c.rule == "raised"
     assert c.published == pytest.approx(15 * area)
-    assert c.per_realization == pytest.approx(100.0)
-    assert c.density == pytest.approx(100.0 / area)  # 926.5 per arcmin^2
+    assert c.mesh_cap == pytest.approx(0.25 * 100) and c.per_realization == pytest.approx(25.0)
+    assert c.density == pytest.approx(25.0 / area)  # 231.6 per arcmin^2
     assert c.hold_cap == pytest.approx(_half_jamming(640 * 640, 4 * 2.46))
+    assert "0.25 per 64x64 background mesh" in c.reason
     # Galaxies need 8 x 0.75" = 6" = 194.8 px apart: the placement holds only 3.8 per realization.
     g = _choice("buldisk", (640, 640), 0.0308, 2.46)
     assert g.per_realization == pytest.approx(_half_jamming(640 * 640, 6.0 / 0.0308))
     assert 3.7 < g.per_realization < 3.9 and g.rule == "raised"
-
-
-def test_auto_density_is_capped_at_one_injection_per_background_mesh():
-    # 320x320 at 0.05"/px: 1.07 per realization at 15 per arcmin^2, 25 meshes of 64x64
-    c = _choice("point", (320, 320), 0.05, 3.0)
-    assert c.per_realization == pytest.approx(25.0) and c.mesh_cap == pytest.approx(25.0)
-    assert "one per 64x64 background mesh" in c.reason
     # smaller meshes (detection.back_size 32) allow four times as many
-    assert _choice("point", (320, 320), 0.05, 3.0, back_size=32).per_realization == pytest.approx(100.0)
+    assert _choice("point", (640, 640), 0.0308, 2.46, back_size=32).per_realization == pytest.approx(100.0)
+
+
+def test_auto_density_stops_at_the_target():
+    # 1400x1400 at 0.05"/px: 20.4 per realization at 15 per arcmin^2, room for 119.6 at a quarter per
+    # mesh: the target, 100
+    c = _choice("point", (1400, 1400), 0.05, 3.0)
+    assert c.published == pytest.approx(15 * (1400 * 0.05 / 60) ** 2) and c.mesh_cap == pytest.approx(0.25 * 1400 ** 2 / 4096)
+    assert c.rule == "raised" and c.per_realization == pytest.approx(100.0)
 
 
 def test_auto_density_keeps_the_published_density_where_it_is_enough():
