@@ -301,9 +301,13 @@ def main(argv=None) -> int:
     p.add_argument("--out", default=None, help="results folder (default results/adaptive, or "
                    "results/adaptive_pool with --pool)")
     g = p.add_argument_group("real outcome pools (--pool)")
-    g.add_argument("--pool", default=None, metavar="RUN_DIR",
-                   help="a finished uniform-magnitude point-source injection run: both methods draw its real "
-                        "outcomes instead of synthetic ones (replaces --scenes)")
+    g.add_argument("--pool", default=None, metavar="RUN_DIR", nargs="+",
+                   help="finished uniform-magnitude point-source injection runs (several: of the same image, "
+                        "pooled): both methods draw their real outcomes instead of synthetic ones (replaces "
+                        "--scenes)")
+    g.add_argument("--regions", action="store_true",
+                   help="also score each method on the footprint's deeper and shallower halves, against "
+                        "held-out references taken per half (a scene whose completeness varies)")
     g.add_argument("--pool-name", default=None, help="scene name for the results (default: RUN_DIR's name)")
     g.add_argument("--closed-form", action="store_true",
                    help="the pool is bench_speed_accuracy's analytic white-noise scene: its closed-form curve "
@@ -317,6 +321,8 @@ def main(argv=None) -> int:
                         "then run on it")
     g.add_argument("--work", default=None, help="folder for --build-pool")
     g.add_argument("--nsims", type=int, default=40, help="realizations of --build-pool")
+    g.add_argument("--build-seed", type=int, default=11,
+                   help="injection seed of --build-pool (the image is always made with seed 11)")
     a = p.parse_args(argv)
     for name in ("reps", "cap", "pilot", "min_batch", "workers", "nsims"):
         if getattr(a, name) < 1:
@@ -326,7 +332,7 @@ def main(argv=None) -> int:
     if a.build_pool:
         if not a.work:
             raise SystemExit("error: --build-pool needs --work DIR.")
-        a.pool = str(build_pool_cli(a.build_pool, Path(a.work), a.nsims, a.workers, 11))
+        a.pool = [str(build_pool_cli(a.build_pool, Path(a.work), a.nsims, a.workers, a.build_seed))]
     if a.pool:
         if a.out is None:
             a.out = str(HERE / "results" / "adaptive_pool")
@@ -378,20 +384,25 @@ def main(argv=None) -> int:
 # --------------------------------------------------------------------------- real outcome pools
 
 
-def build_pool_cli(scene: str, work: Path, nsims: int, workers: int, seed: int) -> Path:
-    """Inject and detect a pool with :mod:`bench_speed_accuracy`'s scenes; return its run directory."""
+def build_pool_cli(scene: str, work: Path, nsims: int, workers: int, seed: int, tile_seed: int = 11) -> Path:
+    """Inject and detect a pool with :mod:`bench_speed_accuracy`'s scenes; return its run directory.
+
+    The image is made with ``tile_seed``; the injections use ``seed`` (another seed on the same
+    ``work`` adds an independent pool of the same image, in ``<scene>_run_seed<seed>``).
+    """
     import bench_speed_accuracy as SA
 
     work.mkdir(parents=True, exist_ok=True)
     if scene == "analytic":
-        sc = SA.analytic_scene(work, size=2048, sigma=1.0, fwhm_pix=3.0, zeropoint=30.0, pixel_scale=0.2, seed=seed)
+        sc = SA.analytic_scene(work, size=2048, sigma=1.0, fwhm_pix=3.0, zeropoint=30.0, pixel_scale=0.2,
+                               seed=tile_seed)
         density = 50.0
     elif scene == "demo":
-        sc = SA.demo_scene(work, size=3000, seed=seed)
+        sc = SA.demo_scene(work, size=3000, seed=tile_seed)
         density = 60.0
     else:
         raise SystemExit(f"error: --build-pool takes analytic or demo, not {scene!r}.")
-    run_dir = work / f"{scene}_run"
+    run_dir = work / (f"{scene}_run" if seed == tile_seed else f"{scene}_run_seed{seed}")
     pool = SA.build_pool(sc, run_dir, nsims=nsims, density=density, seed=seed, workers=workers,
                          log=lambda s: None)
     print(f"pool of {len(pool['outcomes'])} injections in {run_dir} ({pool['wall']:.0f} s wall)", flush=True)
@@ -404,6 +415,30 @@ _POOLS: dict = {}
 
 class PoolExhausted(RuntimeError):
     """A design asked for more injections in one magnitude bin than a replicate's share of the pool holds."""
+
+
+def load_pools(run_dirs) -> dict:
+    """One pool from one or more finished runs on the same image (realizations renumbered run by run)."""
+    dirs = [run_dirs] if isinstance(run_dirs, (str, Path)) else list(run_dirs)
+    key = tuple(str(Path(d).resolve()) for d in dirs)
+    if key in _POOLS:
+        return _POOLS[key]
+    pools = [load_pool(d) for d in dirs]
+    first = pools[0]
+    for p in pools[1:]:
+        if (p["lo"], p["hi"]) != (first["lo"], first["hi"]) or p["noise"].shape != first["noise"].shape \
+                or not np.array_equal(p["mask"], first["mask"]):
+            raise SystemExit(f"error: {p['run_dir']} is not a pool of the same image and range as {first['run_dir']}.")
+    if len(pools) == 1:
+        merged = first
+    else:
+        cols = {c: np.concatenate([p["cols"][c] + (100_000 * i if c == "realization" else 0)
+                                   for i, p in enumerate(pools)]) for c in first["cols"]}
+        n = [p["cols"]["mag"].size for p in pools]
+        merged = {**first, "cols": cols, "run_dir": ", ".join(p["run_dir"] for p in pools),
+                  "cpu_per_injection": float(np.average([p["cpu_per_injection"] for p in pools], weights=n))}
+    _POOLS[key] = merged
+    return merged
 
 
 def load_pool(run_dir) -> dict:
@@ -487,7 +522,19 @@ class PoolSampler:
         return out
 
 
-def pool_references(pool: dict, held: np.ndarray, closed_form: bool) -> dict:
+def pool_regions(pool: dict, regions: bool) -> dict:
+    """Boolean selections of pool rows: ``""`` (all) and, with ``regions``, the footprint's deeper and
+    shallower halves (noise at the injection below / above the median of the unmasked noise map)."""
+    noise = pool["cols"]["noise"]
+    out = {"": np.ones(noise.size, bool)}
+    if regions:
+        thr = float(np.median(pool["noise"][~pool["mask"]]))
+        out["deep half"] = np.isfinite(noise) & (noise <= thr)
+        out["shallow half"] = ~out["deep half"]
+    return out
+
+
+def pool_references(pool: dict, held: np.ndarray, closed_form: bool, regions: bool = False) -> dict:
     """The references: the held-out pool's binned curve (0.05 mag) and, with ``closed_form``, the analytic one.
 
     Each is ``{"grid", "curve", "var", "m50", "m50_var", "source"}`` on the comparison grid (``GRID_STEP``):
@@ -500,8 +547,8 @@ def pool_references(pool: dict, held: np.ndarray, closed_form: bool) -> dict:
     lo, hi = pool["lo"], pool["hi"]
     grid = np.arange(lo, hi + 1e-9, GRID_STEP)
     refs = {}
-    if held.any():
-        mag, det = pool["cols"]["mag"][held], pool["cols"]["detected"][held]
+    for region, sel in (pool_regions(pool, regions).items() if held.any() else ()):
+        mag, det = pool["cols"]["mag"][held & sel], pool["cols"]["detected"][held & sel]
         edges = R.magnitude_edges(lo, hi, 0.05)
         br = R.binned_ratio(mag, det, edges)
         n = np.asarray(br.n, float)
@@ -509,15 +556,22 @@ def pool_references(pool: dict, held: np.ndarray, closed_form: bool) -> dict:
         centers = 0.5 * (edges[:-1] + edges[1:])
         f = np.asarray(br.ratio, float)
         var = np.where(ok, f * (1 - f) / np.maximum(n, 1), np.nan)
+        # bootstrap over whole realizations: injections of one realization share its image and
+        # placement, so resampling single injections could understate the reference's noise
         rng = np.random.default_rng(0)
+        real = pool["cols"]["realization"][held & sel]
+        ids, inv = np.unique(real, return_inverse=True)
+        members = [np.flatnonzero(inv == i) for i in range(ids.size)]
         boot = []
         for _ in range(100):
-            pick = rng.integers(0, mag.size, mag.size)
+            pick = np.concatenate([members[i] for i in rng.integers(0, ids.size, ids.size)])
             boot.append(R.magnitude_at(R.binned_ratio(mag[pick], det[pick], edges), 0.5))
-        refs["held-out pool"] = {"grid": grid, "curve": np.interp(grid, centers[ok], f[ok]),
-                                 "var": np.interp(grid, centers[ok], var[ok]), "m50": float(R.magnitude_at(br, 0.5)),
-                                 "m50_var": float(np.nanvar(boot, ddof=1)),
-                                 "source": f"binned ratio (0.05 mag) of the {int(held.sum())} held-out injections"}
+        refs["held-out pool" + (f" ({region})" if region else "")] = {
+            "grid": grid, "curve": np.interp(grid, centers[ok], f[ok]), "region": region,
+            "var": np.interp(grid, centers[ok], var[ok]), "m50": float(R.magnitude_at(br, 0.5)),
+            "m50_var": float(np.nanvar(boot, ddof=1)),
+            "source": f"binned ratio (0.05 mag) of the {mag.size} held-out injections"
+                      + (f" in the {region} of the footprint" if region else "")}
     if closed_form:
         import bench_speed_accuracy as SA
 
@@ -527,16 +581,18 @@ def pool_references(pool: dict, held: np.ndarray, closed_form: bool) -> dict:
                  "fwhm_pix": float(pool["state"]["fingerprint"]["input"]["options"]["fwhm"])}
         det_cfg = type("Detection", (), {"filter": cfg["filter"], "thresh": float(cfg["thresh"])})
         r = SA.analytic_reference(facts, (lo, hi), det_cfg, float(np.median(pool["noise"])))
-        refs["closed form"] = {"grid": grid, "curve": np.interp(grid, r["grid"], r["curve"]),
+        refs["closed form"] = {"grid": grid, "curve": np.interp(grid, r["grid"], r["curve"]), "region": "",
                                "var": np.zeros(grid.size), "m50": float(r["m50"]), "m50_var": 0.0,
                                "source": r["source"]}
     return refs
 
 
-def _ref_scores(refs: dict, m50_hat: float, grid_hat, curve_hat) -> dict:
-    """m50 error and curve RMS error (reference between 0.1 and 0.9) against every reference."""
+def _ref_scores(refs: dict, estimates: dict) -> dict:
+    """m50 error and curve RMS error (reference between 0.1 and 0.9) against every reference;
+    ``estimates`` maps each reference's region to ``(m50, grid, curve)``."""
     out = {}
     for name, r in refs.items():
+        m50_hat, grid_hat, curve_hat = estimates[r["region"]]
         win = (r["curve"] >= 0.1) & (r["curve"] <= 0.9)
         est = np.interp(r["grid"][win], grid_hat, curve_hat)
         out[name] = {"m50_err": float(m50_hat - r["m50"]) if np.isfinite(m50_hat) else float("nan"),
@@ -545,11 +601,11 @@ def _ref_scores(refs: dict, m50_hat: float, grid_hat, curve_hat) -> dict:
 
 
 def _pool_context(task: dict):
-    key = (str(Path(task["pool"]).resolve()), task["split_seed"], task["holdout"], task["closed_form"])
+    key = (tuple(task["pool"]), task["split_seed"], task["holdout"], task["closed_form"], task["regions"])
     if key not in _POOLS:
-        pool = load_pool(task["pool"])
+        pool = load_pools(task["pool"])
         held, perm_u, perm_a = pool_split(pool, task["split_seed"], task["holdout"])
-        _POOLS[key] = (pool, perm_u, perm_a, pool_references(pool, held, task["closed_form"]))
+        _POOLS[key] = (pool, perm_u, perm_a, pool_references(pool, held, task["closed_form"], task["regions"]))
     return _POOLS[key]
 
 
@@ -562,17 +618,51 @@ def pool_uniform_task(task: dict) -> dict:
     n = task["n"]
     nrep = min(POOL_MAX_UNIFORM_REPS, perm_u.size // n)
     scores, cpu = [], 0.0
+    g = refs[next(iter(refs))]["grid"]
+    regions = pool_regions(pool, task["regions"])
     for rep in range(nrep):
         sub = perm_u[rep * n:(rep + 1) * n]
-        c0 = time.process_time()
-        b = S.binned_estimate({"mag": c["mag"][sub], "detected": c["detected"][sub]}, mag_bin=0.1,
-                              mag_range=(pool["lo"], pool["hi"]))
-        cpu += time.process_time() - c0
-        m50 = np.nan if b.m50 is None or not np.isfinite(b.m50) else float(b.m50)
-        g = refs[next(iter(refs))]["grid"]
-        scores.append(_ref_scores(refs, m50, g, b.curve(g)))
+        est = {}
+        for region, sel in regions.items():
+            # the published method per region: the binned ratio of the injections that fell in it
+            rows = sub[sel[sub]]
+            c0 = time.process_time()
+            b = S.binned_estimate({"mag": c["mag"][rows], "detected": c["detected"][rows]}, mag_bin=0.1,
+                                  mag_range=(pool["lo"], pool["hi"]))
+            if region == "":
+                cpu += time.process_time() - c0
+            est[region] = (np.nan if b.m50 is None or not np.isfinite(b.m50) else float(b.m50), g, b.curve(g))
+        scores.append(_ref_scores(refs, est))
     return {"key": task["key"], "n": n, "replicates": nrep, "scores": scores,
             "cpu_binning": cpu / max(nrep, 1)}
+
+
+def _region_estimate(post, grid, rule) -> tuple:
+    """Posterior-median m50 and curve averaged over the footprint cells of one region.
+
+    ``rule`` is ``("le" | "gt", noise threshold)``; a cell's depth covariate is
+    ``-2.5 log10(noise / sigma_ref)``.  A model without a depth term (or a
+    posterior whose cells carry no depth) predicts one curve everywhere: its
+    image average is its answer for every region.
+    """
+    from comest_bayes.posterior import Footprint, average_prob, crossing_magnitudes
+
+    cells = post.cells if post.cells is not None else post._cells()
+    sigma_ref = post.meta.get("sigma_ref")
+    keep = np.ones(len(cells), bool)
+    if sigma_ref and np.ptp(cells.depth) > 0:
+        d_thr = -2.5 * math.log10(rule[1] / float(sigma_ref))
+        keep = cells.depth >= d_thr if rule[0] == "le" else cells.depth < d_thr
+        if not keep.any():
+            keep[:] = True
+    w = cells.weight[keep]
+    sub = Footprint(depth=cells.depth[keep], u=cells.u[keep], v=cells.v[keep], weight=w / w.sum(),
+                    npix=int(keep.sum()))
+    thetas = post._draws(1000)
+    curves = np.asarray(average_prob(post.model, thetas, grid, sub))
+    m50 = crossing_magnitudes(grid, curves, 0.5)
+    ok = np.isfinite(m50)
+    return (float(np.median(m50[ok])) if ok.mean() >= 0.5 else np.nan, grid, np.median(curves, axis=0))
 
 
 def pool_adaptive_task(task: dict) -> dict:
@@ -595,6 +685,11 @@ def pool_adaptive_task(task: dict) -> dict:
                             seed=task["seed"])
     steps = []
     primary = task["primary"]
+    # the regions as noise thresholds: deep = noise at most the median of the unmasked noise map
+    region_depths = {}
+    if task["regions"]:
+        thr = float(np.median(pool["noise"][~pool["mask"]]))
+        region_depths = {"deep half": ("le", thr), "shallow half": ("gt", thr)}
 
     def fit(table, k):
         c0 = time.process_time()
@@ -603,7 +698,10 @@ def pool_adaptive_task(task: dict) -> dict:
         ok = np.isfinite(view.m50)
         q = (np.percentile(view.m50[ok], [2.275, 15.865, 50, 84.135, 97.725]) if ok.mean() >= 0.5
              else [np.nan] * 5)
-        sc = _ref_scores(refs, q[2], view.grid, np.median(view.curves, axis=0))
+        est = {"": (q[2], view.grid, np.median(view.curves, axis=0))}
+        for region, thr in region_depths.items():
+            est[region] = _region_estimate(post[0], view.grid, thr)
+        sc = _ref_scores(refs, est)
         m_ref = refs[primary]["m50"]
         steps.append({"n": len(table), "scores": sc, "halfwidth": view.m50_halfwidth,
                       "cover68": bool(q[1] <= m_ref <= q[3]), "cover95": bool(q[0] <= m_ref <= q[4]),
@@ -691,14 +789,16 @@ def summarise_pool(raw: dict, scene: str, refs: dict, cpu_per_injection: float) 
 
 def run_pool(a) -> int:
     """``--pool RUN_DIR``: both methods on real injection outcomes (see the module docstring)."""
-    run_dir = Path(a.pool)
-    pool = load_pool(run_dir)
-    scene = a.pool_name or run_dir.name.removesuffix("_run")
+    dirs = [str(Path(d).resolve()) for d in a.pool]
+    pool = load_pools(dirs)
+    scene = a.pool_name or Path(dirs[0]).name.removesuffix("_run") + ("_regions" if a.regions else "")
     out = Path(a.out)
     out.mkdir(parents=True, exist_ok=True)
-    settings = {"pool": str(run_dir.resolve()), "seed": a.seed, "cap": a.cap, "precision": a.precision,
-                "target": a.target, "reps": a.reps, "pilot": a.pilot, "min_batch": a.min_batch,
-                "holdout": not a.no_holdout, "closed_form": a.closed_form}
+    settings = {"pool": dirs[0] if len(dirs) == 1 else dirs, "seed": a.seed, "cap": a.cap,
+                "precision": a.precision, "target": a.target, "reps": a.reps, "pilot": a.pilot,
+                "min_batch": a.min_batch, "holdout": not a.no_holdout, "closed_form": a.closed_form}
+    if a.regions:
+        settings["regions"] = True
     raw_path = out / f"raw_{scene}.json"
     raw = {"settings": settings, "uniform": {}, "adaptive": {}}
     if raw_path.exists():
@@ -708,15 +808,15 @@ def run_pool(a) -> int:
     from comest_bayes.seeding import int_seed_for
 
     held, perm_u, perm_a = pool_split(pool, a.seed, settings["holdout"])
-    refs = pool_references(pool, held, a.closed_form)
+    refs = pool_references(pool, held, a.closed_form, a.regions)
     if not refs:
         raise SystemExit("error: no reference: keep the held-out third or pass --closed-form.")
     primary = "closed form" if a.closed_form else "held-out pool"
     print(f"{scene}: pool of {held.size} injections over {pool['lo']:.2f}-{pool['hi']:.2f} mag, {int(held.sum())} "
           f"held out; {perm_a.size // a.reps} per adaptive replicate; CPU {1e3 * pool['cpu_per_injection']:.3f} ms "
           "per injection; reference m50 " + ", ".join(f"{k} {r['m50']:.4f}" for k, r in refs.items()), flush=True)
-    base = {"pool": str(run_dir), "split_seed": a.seed, "holdout": settings["holdout"],
-            "closed_form": a.closed_form}
+    base = {"pool": dirs, "split_seed": a.seed, "holdout": settings["holdout"], "closed_form": a.closed_form,
+            "regions": a.regions}
     tasks = []
     for n in UNIFORM_N:
         key = f"{scene}|{n}"
