@@ -451,6 +451,7 @@ def _injection_stages(run: RunDirectory, image: ImageData, det: DetectionResult,
     from .progress import realization_with_warnings
     from .recovery import RealizationTask, SimContext, merge_realizations, realization_file, write_realization
     from .rundir import atomic_path
+    from .preflight import FEW_USABLE_INJECTIONS
     from .summary import SUMMARY_FORMAT, depth_summary, kind_binned, kind_summary, maps_hdulist
 
     inj = config.injection
@@ -584,6 +585,9 @@ def _injection_stages(run: RunDirectory, image: ImageData, det: DetectionResult,
         log(f"ratios: {kind}: {c['detected']}/{c['usable']} usable injections detected, {c['false']} false "
             f"detections; binned m50 = {kinds[kind]['m50_binned'] if kinds[kind]['m50_binned'] is None else round(kinds[kind]['m50_binned'], 2)}"
             + (f"; {nempty} of {len(done)} realizations held no injection" if nempty else ""))
+        if 0 < c["usable"] < FEW_USABLE_INJECTIONS:  # the preflight expected more, or warned already
+            log(f"warning: ratios: {kind}: only {c['usable']} usable injections: its completeness and m50 are "
+                f"loose (their intervals say how much); more realizations (--nsims) tighten them")
     timings["ratios"] = round(time.perf_counter() - t0, 3)
 
     # ---- the Bayesian completeness and purity models ---------------------------------

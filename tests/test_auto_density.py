@@ -38,6 +38,8 @@ def test_a_small_fine_pixel_image_gets_a_quarter_injection_per_background_mesh(f
     assert "density: point: " in log and "0.25 per 64x64 background mesh" in log
     # 3 x 25 = 75 expected, fewer usable (stamps must lie on the image): the run warns
     assert "warning: density: only about" in log and "usable point injections" in log
+    # ... and after the run, with the number it got
+    assert "warning: ratios: point: only " in log and "usable injections: its completeness and m50 are loose" in log
     injected = Table.read(out / "catalogs" / "point_injected.fits")
     # Poisson(25) per realization, 3 realizations: 75 +- 8.7 in all (3.5 sd); the published density
     # would have drawn about 13

@@ -70,5 +70,5 @@ def test_a_baseline_on_other_pixels_is_detected(starry_image, tmp_path):
     # on the source-free image (the default) the pixels differ from the detection's: no reuse
     out = tmp_path / "sfi"
     assert main(["run", str(starry_image), "--pixel-scale", "0.2", "--zp", "25", "--fwhm", "3", "--kinds", "point",
-                 "--nsims", "1", "--model", "none", "--ncpu", "1", "--no-report", "--quiet", "--out", str(out)]) == 0
+                 "--nsims", "2", "--model", "none", "--ncpu", "1", "--no-report", "--quiet", "--out", str(out)]) == 0
     assert json.loads((out / "run.json").read_text())["stages"]["baseline"]["reused_detection"] is False
