@@ -70,6 +70,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy import ndimage, optimize, signal, special
 
+from .constants import FWHM_PER_SIGMA
 from .errors import InputError
 
 __all__ = [
@@ -94,7 +95,7 @@ __all__ = [
     "predict",
 ]
 
-_FWHM_TO_SIGMA = 1.0 / (2.0 * math.sqrt(2.0 * math.log(2.0)))
+_FWHM_TO_SIGMA = 1.0 / FWHM_PER_SIGMA
 
 #: PSF profiles the prediction knows: ``psf=`` of the public functions.
 PSF_SHAPES = ("gaussian", "moffat")

@@ -52,13 +52,13 @@ from astropy.stats import poisson_conf_interval
 from scipy.optimize import minimize_scalar
 from scipy.special import ndtri
 
+from .constants import FWHM_PER_SIGMA
 from .errors import InputError
 from .ratios import first_crossing
 
 __all__ = ["DepthOffset", "m50_depth_offset", "noise_equivalent_area", "point_source_depth_nea", "limiting_magnitude", "point_source_depth", "HistogramCompleteness", "histogram_completeness"]
 
 _LN10 = math.log(10.0)
-_FWHM_PER_SIGMA = 2.0 * math.sqrt(2.0 * math.log(2.0))
 
 
 def _positive(name, value) -> float:
@@ -148,7 +148,7 @@ def point_source_depth(sigma, zeropoint: float, fwhm_pix: float, nsigma: float =
         The depth (e.g. the 5-sigma point-source depth m5).
     """
     fwhm = _positive("fwhm_pix", fwhm_pix)
-    sigma_psf = fwhm / _FWHM_PER_SIGMA
+    sigma_psf = fwhm / FWHM_PER_SIGMA
     # sqrt(4 pi) sigma_psf = sqrt(pi) d / 2 with d = 4 sigma_psf
     return limiting_magnitude(sigma, zeropoint, aperture_diameter_pix=4.0 * sigma_psf, nsigma=nsigma,
                               reduce=reduce)

@@ -15,6 +15,7 @@ from pathlib import Path
 
 import numpy as np
 
+from .constants import FWHM_PER_SIGMA
 from .errors import ConfigError
 
 __all__ = ["DEFAULT_CONV", "DetectionResult", "filter_kernel", "noise_map"]
@@ -71,7 +72,7 @@ def filter_kernel(name: str) -> np.ndarray | None:
             fwhm, n1, n2 = float(m.group(1)), int(m.group(2)), int(m.group(3))
             if n1 != n2 or n1 % 2 == 0 or fwhm <= 0:
                 raise ConfigError(f"detection.filter={name!r}: use an odd square size, e.g. gauss_2.0_5x5.")
-            sig = fwhm / (2.0 * np.sqrt(2.0 * np.log(2.0)))
+            sig = fwhm / FWHM_PER_SIGMA
             r = np.arange(n1) - n1 // 2
             g = np.exp(-0.5 * (r / sig) ** 2)
             kernel = np.outer(g, g).astype(np.float32)

@@ -60,6 +60,7 @@ from typing import NamedTuple
 import numpy as np
 from scipy.optimize import least_squares
 
+from .constants import FWHM_PER_SIGMA
 from .catalog import (FLAG_APER_TRUNC, FLAG_BLENDED, FLAG_DEBLEND_OVERFLOW, FLAG_EDGE, FLAG_MASKED,
                       FLAG_SATURATED)
 from .errors import InputError
@@ -267,7 +268,7 @@ def _weighted_ellipticity(stamp, valid, x0, y0, fwhm) -> complex:
     ny, nx = stamp.shape
     yy, xx = np.mgrid[0:ny, 0:nx]
     dx, dy = xx - x0, yy - y0
-    sig = fwhm / 2.3548
+    sig = fwhm / FWHM_PER_SIGMA
     w = np.exp(-0.5 * (dx * dx + dy * dy) / (sig * sig)) * valid * stamp
     norm = w.sum()
     if not np.isfinite(norm) or norm <= 0:

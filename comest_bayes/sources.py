@@ -138,6 +138,7 @@ from astropy.io import fits
 from scipy.optimize import minimize_scalar
 from scipy.special import gammainc, gammaincinv
 
+from .constants import FWHM_PER_SIGMA as _FWHM_PER_SIGMA
 from .config import InjectionConfig, KINDS, PSF_KINDS
 from .errors import InputError, InputFileError
 
@@ -161,7 +162,7 @@ SERSIC_N_STEP = 0.05
 #: Largest number of distinct Sersic indices (GalSim caches the tables of 100).
 MAX_SERSIC_INDICES = 80
 #: FWHM of a Gaussian in units of its sigma, 2 sqrt(2 ln 2).
-FWHM_PER_SIGMA = 2.0 * np.sqrt(2.0 * np.log(2.0))
+FWHM_PER_SIGMA = _FWHM_PER_SIGMA  # re-exported: comest_bayes.constants is its home
 #: Moffat beta injected when neither the configuration nor the image's stars give one.
 DEFAULT_MOFFAT_BETA = 3.0
 
