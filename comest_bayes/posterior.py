@@ -40,6 +40,7 @@ import numpy as np
 
 from .errors import InputError
 from .jsonio import dumps
+from .ratios import first_crossings
 from .likelihood import BinomialData, CompletenessModel, Covariates
 from .modelspec import ModelSpec, spec_from_mapping
 
@@ -342,23 +343,10 @@ def footprint_sample(mask: np.ndarray, n: int, rng: np.random.Generator) -> np.n
 
 
 def crossing_magnitudes(mags: np.ndarray, curves: np.ndarray, level: float) -> np.ndarray:
-    """Per draw, the magnitude where a curve first falls below ``level`` (linear interpolation).
-
-    ``curves`` has shape (S, M) on the increasing grid ``mags``; NaN for draws
-    that never reach ``level`` (e.g. a plateau below it) or start below it.
-    """
-    above = curves >= level
-    out = np.full(curves.shape[0], np.nan)
-    # first index where the curve is below the level, after being above it at the bright end
-    below = ~above
-    first = np.argmax(below, axis=1)
-    ok = above[:, 0] & below.any(axis=1)
-    rows = np.flatnonzero(ok)
-    j = first[rows]
-    c0, c1 = curves[rows, j - 1], curves[rows, j]
-    m0, m1 = mags[j - 1], mags[j]
-    out[rows] = m0 + (c0 - level) / np.where(c0 != c1, c0 - c1, 1.0) * (m1 - m0)
-    return out
+    """Per draw, the magnitude where a curve first falls below ``level``: the binned ratios' rule
+    (:func:`comest_bayes.ratios.first_crossings`) on the grid ``mags``; ``curves`` has shape (S, M).
+    NaN for draws that never reach ``level`` (e.g. a plateau below it) or never fall below it."""
+    return first_crossings(mags, curves, level)
 
 
 @dataclass

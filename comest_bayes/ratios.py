@@ -89,6 +89,7 @@ __all__ = [
     "purity",
     "detection_rate",
     "first_crossing",
+    "first_crossings",
     "magnitude_at",
     "default_map_mag_edges",
     "transition_map_mag_edges",
@@ -510,12 +511,37 @@ def detection_rate(det_mag, truth_mag, edges, *, det_excluded=None, truth_masked
                        confidence=confidence, interval="poisson")
 
 
+def first_crossings(centers, curves, level: float) -> np.ndarray:
+    """:func:`first_crossing` of every row of ``curves`` (S, M) on the increasing grid ``centers`` (M,).
+
+    The package's one crossing rule, for binned curves and posterior draws alike: from the
+    brightest point at or above ``level``, the first fainter point below it, and linear
+    interpolation between that point and the one before it.  NaN where a row never reaches
+    ``level`` or never falls below it afterwards.  Rows must be finite (see :func:`first_crossing`
+    for a curve with empty bins).
+    """
+    c = np.asarray(centers, dtype=float)
+    r = np.atleast_2d(np.asarray(curves, dtype=float))
+    above = r >= level
+    start = np.argmax(above, axis=1)
+    after = ~above & (np.arange(r.shape[1])[None, :] > start[:, None])
+    ok = above.any(axis=1) & after.any(axis=1)
+    out = np.full(r.shape[0], np.nan)
+    rows = np.flatnonzero(ok)
+    j = np.argmax(after[rows], axis=1)
+    i = j - 1  # r[i] >= level: j is the first point below level after the first one above
+    ri, rj = r[rows, i], r[rows, j]
+    out[rows] = c[i] + (ri - level) / np.where(ri != rj, ri - rj, 1.0) * (c[j] - c[i])
+    return out
+
+
 def first_crossing(centers, values, level: float) -> float:
     """Magnitude where a falling curve first drops below ``level``.
 
     Starting at the brightest point whose value is >= ``level``, finds the
     first fainter finite point whose value is < ``level`` and interpolates
-    linearly between the two.  Non-finite values (empty bins) are skipped.
+    linearly between the two (:func:`first_crossings`, after dropping
+    non-finite values such as empty bins).
 
     Parameters
     ----------
@@ -535,16 +561,9 @@ def first_crossing(centers, values, level: float) -> float:
     r = np.asarray(values, dtype=float)
     c = np.asarray(centers, dtype=float)
     good = np.isfinite(r)
-    r, c = r[good], c[good]
-    above = np.flatnonzero(r >= level)
-    if above.size == 0:
+    if not good.any():
         return float("nan")
-    below = np.flatnonzero((r < level) & (np.arange(r.size) > above[0]))
-    if below.size == 0:
-        return float("nan")
-    j = below[0]
-    i = j - 1  # r[i] >= level: j is the first point below level after above[0]
-    return float(c[i] + (r[i] - level) / (r[i] - r[j]) * (c[j] - c[i]))
+    return float(first_crossings(c[good], r[good][None, :], level)[0])
 
 
 def magnitude_at(ratio: BinnedRatio, level: float = 0.5) -> float:
