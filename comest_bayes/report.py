@@ -283,6 +283,11 @@ def _facts_section(r: _Report) -> None:
     elif check:
         rows.append(["point-source size check", "not enough sources",
                      f"{check['ninjected']} detected point-source injections, {check['nstars']} stars"])
+    for kind, choice in (run.state.get("injection_density") or {}).items():
+        rows.append([f"injections ({kind})",
+                     f"{choice.get('density', float('nan')):.3g} per arcmin^2, "
+                     f"{choice.get('per_realization', float('nan')):.0f} per realization",
+                     choice.get("reason") or choice.get("source", "")])
     det = (run.state.get("stages", {}).get("detect") or {})
     if det:
         cfg = run.config.detection

@@ -159,6 +159,10 @@ def test_report_tables_hold_the_numbers_of_the_run(report_run):
     assert f"{facts['zeropoint']:.3f} mag" in html and facts["provenance"]["zeropoint"] in html
     assert f"{facts['fwhm_pix']:.2f} pixel = {facts['fwhm_pix'] * facts['pixel_scale_arcsec']:.2f} arcsec" in html
     assert "Moffat" in html  # where the FWHM came from
+    # how many injections per realization, and why (the automatic density rule or the user's)
+    for kind, choice in state["injection_density"].items():
+        assert f"injections ({kind})" in html and choice["reason"] in html
+        assert f"{choice['per_realization']:.0f} per realization" in html
     assert f"{summary['depth']['point_source_5sigma']:.2f}" in html
     # stage timings and the configuration
     for stage in ("detect", "sourcefree", "baseline", "inject", "ratios", "fit"):
