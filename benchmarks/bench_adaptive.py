@@ -351,6 +351,8 @@ def main(argv=None) -> int:
     for name in ("reps", "cap", "pilot", "min_batch", "workers", "nsims"):
         if getattr(a, name) < 1:
             raise SystemExit(f"error: --{name.replace('_', '-')} must be a positive integer, got {getattr(a, name)}.")
+    if a.cap < a.pilot:
+        raise SystemExit(f"error: --cap {a.cap} is below the pilot of {a.pilot} injections.")
     if a.no_holdout and not a.closed_form:
         raise SystemExit("error: --no-holdout leaves no reference without --closed-form.")
     if a.build_pool:
@@ -867,7 +869,8 @@ def run_pool(a) -> int:
             f"{k}: {_fmt(v['uniform_binned'])} / {_fmt(v['adaptive'])} = x{_fmt(v['ratio'], '.1f')}"
             for k, v in s["needed"].items()), flush=True)
         print("  CPU seconds needed: " + "; ".join(
-            f"{k}: {_fmt(v['uniform_binned'], '.1f')} / {_fmt(v['adaptive'], '.1f')}" for k, v in s["cpu_needed"].items()),
+            f"{k}: {_fmt(v['uniform_binned'], '.1f')} / {_fmt(v['adaptive'], '.1f')}"
+            for k, v in s["cpu_needed"].items()),
               flush=True)
         if "debiased" in s:
             print(f"  reference noise taken out: " + "; ".join(
