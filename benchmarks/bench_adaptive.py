@@ -873,7 +873,7 @@ def run_pool(a) -> int:
             for k, v in s["cpu_needed"].items()),
               flush=True)
         if "debiased" in s:
-            print(f"  reference noise taken out: " + "; ".join(
+            print("  reference noise taken out: " + "; ".join(
                 f"{k}: {_fmt(v['uniform_binned'])} / {_fmt(v['adaptive'])} = x{_fmt(v['ratio'], '.1f')}"
                 for k, v in s["debiased"]["needed"].items()), flush=True)
     print(f"wrote {out / f'adaptive_{scene}.json'} and {out / f'adaptive_{scene}.png'}")
