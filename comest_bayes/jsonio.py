@@ -10,10 +10,9 @@ from __future__ import annotations
 
 import json
 import math
+import sys
 from pathlib import PurePath
 from typing import Any, Callable
-
-import numpy as np
 
 __all__ = ["jsonable", "json_float", "dumps"]
 
@@ -37,17 +36,25 @@ def jsonable(obj: Any, *, fallback: Callable[[Any], Any] | None = None) -> Any:
     """
     if obj is None or isinstance(obj, (str, bool)):
         return obj
+    # NumPy values can only exist once NumPy is imported; not importing it here keeps `import
+    # comest_bayes.config` (and the front door) free of it
+    np = sys.modules.get("numpy")
     if isinstance(obj, dict):
         return {str(k): jsonable(v, fallback=fallback) for k, v in obj.items()}
     if isinstance(obj, (list, tuple)):
         return [jsonable(v, fallback=fallback) for v in obj]
-    if isinstance(obj, np.ndarray):
-        return jsonable(obj.tolist(), fallback=fallback)
-    if isinstance(obj, np.bool_):
-        return bool(obj)
-    if isinstance(obj, (int, np.integer)):
+    if np is not None:
+        if isinstance(obj, np.ndarray):
+            return jsonable(obj.tolist(), fallback=fallback)
+        if isinstance(obj, np.bool_):
+            return bool(obj)
+        if isinstance(obj, np.integer):
+            return int(obj)
+        if isinstance(obj, np.floating):
+            return json_float(obj)
+    if isinstance(obj, int):
         return int(obj)
-    if isinstance(obj, (float, np.floating)):
+    if isinstance(obj, float):
         return json_float(obj)
     if isinstance(obj, PurePath):
         return str(obj)
