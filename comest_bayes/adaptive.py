@@ -109,6 +109,9 @@ class PosteriorView:
     grid: np.ndarray
     curves: np.ndarray   # (S, G)
     m50: np.ndarray      # (S,)
+    #: The sampler's own convergence verdict: a precision read off draws that did not converge is not
+    #: a precision reached (the loop goes on).
+    converged: bool = True
 
     @property
     def m50_halfwidth(self) -> float:
@@ -200,28 +203,33 @@ def after_batch(view: PosteriorView, lo: float, hi: float, *, precision: float, 
     """What follows a batch: ``(reached, reason, next design)``.
 
     ``reached`` when the m50 half-width (with ``target="f"``: the posterior
-    sd of f at every one of ``magnitudes``) is at most ``precision``;
+    sd of f at every one of ``magnitudes``) is at most ``precision`` and
+    the posterior's sampler converged (a width read off unconverged draws
+    is no precision: the loop goes on);
     otherwise stopped (with the reason) ``at_cap``, or the design of the next
     batch.  With ``target="f"`` that design aims only at the magnitudes whose
     f is not yet precise enough.  ``spent`` words the effort so far for the
     reason (e.g. ``"3375 injections"``).
     """
+    unconverged = "" if view.converged else " but the posterior sampler did not converge"
     if target == "f":
         sd = view.f_sd(magnitudes)
         worst = float(np.max(sd))
         said = "sd of f at " + ", ".join(f"{m:.2f}" for m in magnitudes) + " " + ", ".join(f"{v:.4f}" for v in sd)
-        if worst <= precision:
+        if worst <= precision and view.converged:
             return True, f"{said} <= {precision} after {spent}", None
         if at_cap:
-            return False, f"stopped at the cap of {spent} with {said} (largest > {precision})", None
-        unmet = [m for m, v in zip(magnitudes, sd) if v > precision]
+            return False, (f"stopped at the cap of {spent} with {said}"
+                           + (f" (largest > {precision})" if worst > precision else unconverged)), None
+        unmet = [m for m, v in zip(magnitudes, sd) if v > precision] or list(magnitudes)
         return False, "", design_from_draws(view.grid, view.curves, lo, hi, target="f", magnitudes=unmet,
                                             uniform_share=uniform_share)
     half = view.m50_halfwidth
-    if half <= precision:
+    if half <= precision and view.converged:
         return True, f"m50 half-width {half:.4f} <= {precision} after {spent}", None
     if at_cap:
-        return False, f"stopped at the cap of {spent} with m50 half-width {half:.4f} > {precision}", None
+        return False, (f"stopped at the cap of {spent} with m50 half-width {half:.4f}"
+                       + (f" > {precision}" if half > precision else f" <= {precision}{unconverged}")), None
     return False, "", design_from_draws(view.grid, view.curves, lo, hi, target=target, m50=view.m50,
                                         uniform_share=uniform_share)
 
@@ -348,6 +356,8 @@ def package_fitter(*, image_shape, noise, mask, lo: float, hi: float, seed: int,
             state["selected_at"] = n
         state["warm"] = warm_state(post)
         entry["warm_refit"] = warm is not None
-        return PosteriorView(grid=grid, curves=curves, m50=np.asarray(m50, float)), (post, entry)
+        converged = bool((entry.get("diagnostics") or {}).get("converged", True))
+        return (PosteriorView(grid=grid, curves=curves, m50=np.asarray(m50, float), converged=converged),
+                (post, entry))
 
     return fit

@@ -327,3 +327,29 @@ def test_a_uniform_pool_feeds_a_design_exactly_without_reuse():
     with pytest.raises(B.PoolExhausted, match="needs"):
         sampler.take(np.full(5000, 25.41))
     np.testing.assert_array_equal(sampler.used, used)
+
+
+def test_a_precision_read_off_an_unconverged_posterior_does_not_stop_the_loop():
+    # The pool benchmark found a run that stopped at "precision reached" on a posterior whose importance
+    # sampling failed and whose emcee fallback did not converge (m50 0.016 mag off, +-0.001).  The same
+    # narrow draws with converged=False must give the next design instead (or, at the cap, say why).
+    from comest_bayes.adaptive import PosteriorView, after_batch
+
+    grid = np.linspace(22.0, 26.0, 81)
+    rng = np.random.default_rng(4)
+    m50 = 24.0 + 0.001 * rng.standard_normal(400)
+    curves = 1.0 / (1.0 + np.exp((grid[None, :] - m50[:, None]) / 0.2))
+    ok = PosteriorView(grid=grid, curves=curves, m50=m50)
+    bad = PosteriorView(grid=grid, curves=curves, m50=m50, converged=False)
+    kw = dict(precision=0.01, spent="1000 injections", target="m50", uniform_share=0.15)
+    reached, reason, nxt = after_batch(ok, 22.0, 26.0, at_cap=False, **kw)
+    assert reached and nxt is None
+    reached, reason, nxt = after_batch(bad, 22.0, 26.0, at_cap=False, **kw)
+    assert not reached and nxt is not None and reason == ""
+    reached, reason, nxt = after_batch(bad, 22.0, 26.0, at_cap=True, **kw)
+    assert not reached and nxt is None and "did not converge" in reason
+    f_kw = dict(kw, target="f", magnitudes=(24.0,))
+    # the f target likewise: sd of f at m50 is ~0.001 here, below 0.4, but unconverged draws do not count
+    assert after_batch(ok, 22.0, 26.0, at_cap=False, **dict(f_kw, precision=0.4))[0]
+    reached, reason, nxt = after_batch(bad, 22.0, 26.0, at_cap=True, **dict(f_kw, precision=0.4))
+    assert not reached and "did not converge" in reason
