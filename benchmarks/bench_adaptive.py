@@ -766,7 +766,7 @@ def _pool_raw_view(raw: dict, ref: str) -> dict:
     return view
 
 
-def summarise_pool(raw: dict, scene: str, refs: dict, cpu_per_injection: float) -> dict:
+def summarise_pool(raw: dict, scene: str, refs: dict, cpu_per_injection: float, primary: str = "") -> dict:
     """Per reference: the summary of :func:`summarise` plus CPU per method and, for a noisy reference,
     RMSEs with the reference's own variance taken out."""
     out = {}
@@ -784,6 +784,15 @@ def summarise_pool(raw: dict, scene: str, refs: dict, cpu_per_injection: float) 
         s["adaptive"]["within06"] = [float(np.mean([a["steps"][j]["within06"] for a in ada]))
                                      for j in range(len(s["adaptive"]["n"]))]
         s["reference"] = {"m50": r["m50"], "m50_sd": math.sqrt(r["m50_var"]), "source": r["source"]}
+        if ref == primary:
+            # the primary reference's coverage at each replicate's last step (where it stopped: precision
+            # reached, cap, or its share of the pool ran dry), all replicates counted
+            last = [a["steps"][-1] for a in ada if a["steps"]]
+            s["coverage_last_step"] = {"replicates": len(last), "n_median": float(np.median([x["n"] for x in last])),
+                                       "halfwidth_median": float(np.median([x["halfwidth"] for x in last])),
+                                       "cov68": float(np.mean([x["cover68"] for x in last])),
+                                       "cov95": float(np.mean([x["cover95"] for x in last])),
+                                       "band68": _binom99(len(last), 0.6827), "band95": _binom99(len(last), 0.9545)}
         # CPU seconds (injection + detection + every fit) each method needs for each target
         s["cpu_needed"] = {}
         for name, (what, level) in TARGETS.items():
@@ -856,7 +865,7 @@ def run_pool(a) -> int:
                                        "min_batch": a.min_batch, "primary": primary,
                                        "seed": int_seed_for(a.seed, "adaptive", scene, rep)}))
     _run_tasks(tasks, {"uniform": pool_uniform_task, "adaptive": pool_adaptive_task}, raw, raw_path, a.workers)
-    summary = summarise_pool(raw, scene, refs, pool["cpu_per_injection"])
+    summary = summarise_pool(raw, scene, refs, pool["cpu_per_injection"], primary)
     report = {"settings": settings, "scene": scene, "primary_reference": primary,
               "pool_injections": int(held.size), "held_out": int(held.sum()),
               "mag_range": [pool["lo"], pool["hi"]], "cpu_per_injection": pool["cpu_per_injection"],
@@ -876,6 +885,11 @@ def run_pool(a) -> int:
             print("  reference noise taken out: " + "; ".join(
                 f"{k}: {_fmt(v['uniform_binned'])} / {_fmt(v['adaptive'])} = x{_fmt(v['ratio'], '.1f')}"
                 for k, v in s["debiased"]["needed"].items()), flush=True)
+    cl = summary.get(primary, {}).get("coverage_last_step")
+    if cl:
+        print(f"coverage vs {primary} at each replicate's last step ({cl['replicates']} replicates, median "
+              f"{cl['n_median']:.0f} injections, half-width {cl['halfwidth_median']:.4f}): 68% {cl['cov68']:.2f} "
+              f"(99% range {cl['band68']}), 95% {cl['cov95']:.2f} ({cl['band95']})", flush=True)
     print(f"wrote {out / f'adaptive_{scene}.json'} and {out / f'adaptive_{scene}.png'}")
     return 0
 
