@@ -265,7 +265,9 @@ def fit_kind(outcomes: Table, *, kind: str, quantity: str, requested: str, confi
     smooth = any(c.uses_smooth for c in candidates)
     # every unmasked pixel, grouped into weighted covariate cells: the exact image average
     if footprint_points is not None:
-        cells = Footprint.from_points(*footprint_points, data.meta.get("sigma_ref"), image_shape)
+        grid = footprint_grid(smooth)
+        cells = Footprint.from_points(*footprint_points, data.meta.get("sigma_ref"), image_shape, ddepth=grid[0],
+                                      nuv=grid[1])
     else:
         grid = footprint_grid(smooth)
         hist = (footprints or {}).get(grid)

@@ -131,11 +131,17 @@ class Footprint:
         return cls(depth=np.asarray(depth, np.float64), u=u, v=v, weight=n / n.sum(), npix=hist.npix)
 
     @classmethod
-    def from_points(cls, x, y, noise, sigma_ref: float | None, shape) -> "Footprint":
-        """The footprint as a sample of positions sampled it (e.g. the injections): one cell each, equal weights.
+    def from_points(cls, x, y, noise, sigma_ref: float | None, shape, *, ddepth: float | None = 0.01,
+                    nuv: int = 1) -> "Footprint":
+        """The footprint as sampled by a set of positions (e.g. the injections), each of equal weight.
 
         Depth follows the rule of the outcome table (non-finite or non-positive
-        noise counts at the reference depth).
+        noise counts at the reference depth).  The points are grouped as the
+        pixels of :meth:`from_maps` are: by depth in steps of ``ddepth`` mag and
+        in ``nuv`` x ``nuv`` blocks, each cell at its members' mean covariates
+        and weighted by their number (``ddepth=None``: one cell per point).
+        12,000 injections take a few dozen cells instead of 12,000, and every
+        image average costs that much less.
         """
         x, y, sig = (np.asarray(a, np.float64) for a in (x, y, noise))
         ny, nx = shape
@@ -143,8 +149,18 @@ class Footprint:
         good = np.isfinite(sig) & (sig > 0)
         if sigma_ref:
             depth[good] = -2.5 * np.log10(sig[good] / float(sigma_ref))
-        return cls(depth=depth, u=2.0 * x / max(nx - 1, 1) - 1.0, v=2.0 * y / max(ny - 1, 1) - 1.0,
-                   weight=np.full(sig.size, 1.0 / sig.size), npix=int(sig.size))
+        u, v = 2.0 * x / max(nx - 1, 1) - 1.0, 2.0 * y / max(ny - 1, 1) - 1.0
+        if ddepth is None or sig.size == 0:
+            return cls(depth=depth, u=u, v=v, weight=np.full(sig.size, 1.0 / max(sig.size, 1)), npix=int(sig.size))
+        nuv = int(nuv)
+        dkey = np.floor((depth - depth.min()) / float(ddepth)).astype(np.int64)
+        bu = np.clip(np.floor((u + 1.0) * 0.5 * nuv), 0, nuv - 1).astype(np.int64)
+        bv = np.clip(np.floor((v + 1.0) * 0.5 * nuv), 0, nuv - 1).astype(np.int64)
+        _, cell = np.unique((dkey * nuv + bu) * nuv + bv, return_inverse=True)
+        cell = np.asarray(cell).ravel()
+        n = np.bincount(cell).astype(np.float64)
+        return cls(depth=np.bincount(cell, weights=depth) / n, u=np.bincount(cell, weights=u) / n,
+                   v=np.bincount(cell, weights=v) / n, weight=n / n.sum(), npix=int(sig.size))
 
     def __len__(self) -> int:
         return int(self.weight.size)
