@@ -449,7 +449,7 @@ def _injection_stages(run: RunDirectory, image: ImageData, det: DetectionResult,
     from .detection import detect_with_backend
     from .executors import run_tasks
     from .progress import realization_with_warnings
-    from .recovery import RealizationTask, SimContext, merge_realizations, realization_file, write_realization
+    from .recovery import RealizationTask, SimContext, merge_realizations, realization_file
     from .rundir import atomic_path
     from .preflight import FEW_USABLE_INJECTIONS
     from .summary import SUMMARY_FORMAT, depth_summary, kind_binned, kind_summary, maps_hdulist
@@ -518,21 +518,11 @@ def _injection_stages(run: RunDirectory, image: ImageData, det: DetectionResult,
         log(f"inject: {len(todo)} realizations to run ({ndone} done earlier) of kinds {', '.join(inj.kinds)} "
             f"on {compute.describe()}")
 
-        said = set()
+        def failed(name, last_line):
+            failures.append(name)
+            log(f"warning: realization {name} failed; it will be retried on the next run:\n{last_line}")
 
-        def on_result(task, packed):
-            result, caught = packed
-            for text in caught:  # the workers' warnings, once each, above the progress bar
-                if text not in said:
-                    said.add(text)
-                    log(f"warning: realization {result.kind} #{result.index}: {text}")
-            if result.error is not None:
-                failures.append(f"{result.kind} #{result.index}")
-                log(f"warning: realization {result.kind} #{result.index} failed; it will be retried on the "
-                    f"next run:\n{result.error.strip().splitlines()[-1]}")
-                return
-            cpu["inject"] += float(result.seconds.get("cpu", 0.0))
-            write_realization(result, sims)
+        on_result = _realization_recorder(sims, cpu, log, set(), failed)
 
         run_tasks(realization_with_warnings, todo, on_result=on_result, executor=compute.executor,
                   workers=compute.workers, scheduler=compute.scheduler, progress=compute.progress,
@@ -694,6 +684,30 @@ def _point_size_check(image: ImageData, det: DetectionResult, matched, log, star
     return check
 
 
+def _realization_recorder(sims, cpu: dict, log, said: set, on_failure, *, label: str = ""):
+    """The ``on_result`` of realization tasks, for the uniform injection and the adaptive batches alike.
+
+    Each distinct worker warning is logged once (``said`` holds those logged already, so a caller
+    can share it across batches), a failed realization goes to ``on_failure(name, last line of its
+    error)``, and a finished one is written and its CPU seconds added to ``cpu["inject"]``.
+    """
+    from .recovery import write_realization
+
+    def on_result(task, packed):
+        result, caught = packed
+        name = f"{result.kind} #{result.index}"
+        for text in caught:  # the workers' warnings, once each, above the progress bar
+            if text not in said:
+                said.add(text)
+                log(f"warning: realization {name}{label}: {text}")
+        if result.error is not None:
+            on_failure(name, result.error.strip().splitlines()[-1])
+            return
+        cpu["inject"] = cpu.get("inject", 0.0) + float(result.seconds.get("cpu", 0.0))
+        write_realization(result, sims)
+    return on_result
+
+
 def _adaptive_injection(run: RunDirectory, ctx, config: RunConfig, compute: "ComputeOptions", log,
                         noise: np.ndarray, mask: np.ndarray, mag_range, cpu: dict) -> tuple[dict, dict]:
     """Realizations in batches designed from the posterior, per kind, until the precision (docs/adaptive.md).
@@ -714,7 +728,7 @@ def _adaptive_injection(run: RunDirectory, ctx, config: RunConfig, compute: "Com
     from .design import MagnitudeDesign, uniform_design
     from .executors import run_tasks
     from .progress import realization_with_warnings
-    from .recovery import RealizationTask, merge_realizations, realization_file, write_realization
+    from .recovery import RealizationTask, merge_realizations, realization_file
     from .rundir import atomic_path
     from .seeding import int_seed_for
 
@@ -764,18 +778,8 @@ def _adaptive_injection(run: RunDirectory, ctx, config: RunConfig, compute: "Com
                     # the pilot keeps the published uniform draws (identical to a run without --precision)
                     tasks.append(RealizationTask(ctx[kind], kind, i, design=None if k == 0 else design.to_dict()))
         failed = []
-
-        def on_result(task, packed):
-            result, caught = packed
-            for text in caught:  # the workers' warnings, once each, above the progress bar
-                if text not in said:
-                    said.add(text)
-                    log(f"warning: realization {result.kind} #{result.index} (adaptive batch {k}): {text}")
-            if result.error is not None:
-                failed.append(f"{result.kind} #{result.index}: {result.error.strip().splitlines()[-1]}")
-                return
-            cpu["inject"] = cpu.get("inject", 0.0) + float(result.seconds.get("cpu", 0.0))
-            write_realization(result, sims)
+        on_result = _realization_recorder(sims, cpu, log, said, lambda name, last: failed.append(f"{name}: {last}"),
+                                          label=f" (adaptive batch {k})")
 
         if tasks:
             run_tasks(realization_with_warnings, tasks, on_result=on_result, executor=compute.executor,
