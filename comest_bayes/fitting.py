@@ -149,9 +149,10 @@ def fit_task(task: dict) -> tuple:
                           "skipped": f"{nreal} real and {nfalse} false detections: a purity model needs at least "
                                      f"{MIN_CLASS} of each; see the binned purity"}
     shared = task.get("shared_maps") or {}
-    footprints, noise_grid = shared.get("footprints"), shared.get("noise_grid")
-    # the noise map is only read when the run did not pass its footprint histogram and noise grid
-    noise = None if footprints and noise_grid is not None else fits.getdata(run / "noise.fits").astype(np.float32)
+    footprints, noise_grid = shared.get("footprints") or {}, shared.get("noise_grid")
+    # the noise map is only read when the run did not pass the footprint histogram this fit needs and the grid
+    have = footprint_grid(needs_smooth(task["requested"])) in footprints and noise_grid is not None
+    noise = None if have else fits.getdata(run / "noise.fits").astype(np.float32)
     mask = fits.getdata(run / "mask.fits").astype(bool)
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")

@@ -871,10 +871,11 @@ def _fit_stages(run: RunDirectory, image: ImageData, det: DetectionResult, confi
     if tasks:
         log(f"fit: {len(tasks)} model fits ({', '.join(t['kind'] + ' ' + t['quantity'] for t in tasks)}) "
             f"on {compute.describe()}")
-        # one pass over the maps for every fit (footprint cells, noise grid), timed as part of the fit stage
+        # one pass over the maps (in memory: the noise.fits and mask.fits the fits would read) for every fit
+        # (footprint cells, noise grid), timed as part of the fit stage
         c0 = time.process_time()
-        maps = shared_maps(fits.getdata(run.file("noise.fits")).astype(np.float32),
-                           fits.getdata(run.file("mask.fits")).astype(bool), sorted({t["requested"] for t in tasks}))
+        maps = shared_maps(np.asarray(det.noise, np.float32), np.asarray(image.mask, bool),
+                           sorted({t["requested"] for t in tasks}))
         cpu["fit"] = cpu.get("fit", 0.0) + time.process_time() - c0
         for t in tasks:
             t["shared_maps"] = maps
