@@ -1,6 +1,6 @@
 """Benchmark: injections needed by the adaptive design against the published uniform + binned method.
 
-Outcome-level scenes with a known completeness (:mod:`comest_bayes.synthetic`),
+Outcome-level scenes with a known completeness (:mod:`comest_bayes.sim.synthetic`),
 so the truth is exact and thousands of replicates are affordable:
 
 ``white``
@@ -20,7 +20,7 @@ For each scene:
   range, m50 of the 0.1-mag binned ratio by linear interpolation, the binned
   curve interpolated between bin centres; ``--reps`` replicates at each of a
   geometric ladder of N from 500 to 400,000 injections.
-* **adaptive**: :func:`comest_bayes.adaptive.run_sequential` with the
+* **adaptive**: :func:`comest_bayes.pipeline.adaptive.run_sequential` with the
   package's default fit (``auto``) after every batch (a uniform pilot of
   1000, then batches of half the injections so far, designed for
   ``--target``), ``--reps`` replicates up to ``--cap`` injections; the error of
@@ -99,14 +99,14 @@ GRID_STEP = 0.01
 
 
 def _scene(name: str, seed: int):
-    from comest_bayes import synthetic as S
+    from comest_bayes.sim import synthetic as S
 
     p = SCENES[name]
     return S.make_scene(SHAPE, gradient=p["gradient"], chip_gap=p["chip_gap"], seed=seed)
 
 
 def _truth_setup(name: str, scene):
-    from comest_bayes import synthetic as S
+    from comest_bayes.sim import synthetic as S
 
     truth = S.get_truth(SCENES[name]["truth"])
     lo, hi = truth.default_mag_range()
@@ -118,7 +118,7 @@ def _truth_setup(name: str, scene):
 
 def uniform_task(task: dict) -> dict:
     """Replicates of the published method at one N: m50 errors and curve RMS errors."""
-    from comest_bayes import synthetic as S
+    from comest_bayes.sim import synthetic as S
 
     scene = _scene(task["scene"], task["scene_seed"])
     truth, (lo, hi), grid, curve, window, m50 = _truth_setup(task["scene"], scene)
@@ -135,11 +135,11 @@ def uniform_task(task: dict) -> dict:
 
 def adaptive_task(task: dict) -> dict:
     """One adaptive replicate: the error after every batch."""
-    from comest_bayes import runtime
+    from comest_bayes.pipeline import runtime
 
     runtime.configure(threads=1)
-    from comest_bayes import synthetic as S
-    from comest_bayes.adaptive import AdaptiveSettings, package_fitter, run_sequential
+    from comest_bayes.sim import synthetic as S
+    from comest_bayes.pipeline.adaptive import AdaptiveSettings, package_fitter, run_sequential
 
     scene = _scene(task["scene"], task["scene_seed"])
     truth, (lo, hi), grid, curve, window, m50 = _truth_setup(task["scene"], scene)
@@ -568,7 +568,7 @@ def pool_references(pool: dict, held: np.ndarray, closed_form: bool, regions: bo
     the variance of its m50 (bootstrap over the held-out injections), so that reference noise can be
     taken out of a mean squared error (the held-out set is disjoint from every replicate).
     """
-    from comest_bayes import ratios as R
+    from comest_bayes.ratios import binned as R
 
     lo, hi = pool["lo"], pool["hi"]
     grid = np.arange(lo, hi + 1e-9, GRID_STEP)
@@ -637,7 +637,7 @@ def _pool_context(task: dict):
 
 def pool_uniform_task(task: dict) -> dict:
     """The published method at one N on disjoint slices of the pool: errors against every reference."""
-    from comest_bayes import synthetic as S
+    from comest_bayes.sim import synthetic as S
 
     pool, perm_u, _, refs = _pool_context(task)
     c = pool["cols"]
@@ -671,7 +671,7 @@ def _region_estimate(post, grid, rule) -> tuple:
     posterior whose cells carry no depth) predicts one curve everywhere: its
     image average is its answer for every region.
     """
-    from comest_bayes.posterior import Footprint, average_prob, crossing_magnitudes
+    from comest_bayes.bayes.posterior import Footprint, average_prob, crossing_magnitudes
 
     cells = post.cells if post.cells is not None else post._cells()
     sigma_ref = post.meta.get("sigma_ref")
@@ -693,13 +693,13 @@ def _region_estimate(post, grid, rule) -> tuple:
 
 def pool_adaptive_task(task: dict) -> dict:
     """One adaptive replicate fed by its own disjoint share of the pool: the errors after every batch."""
-    from comest_bayes import runtime
+    from comest_bayes.pipeline import runtime
 
     runtime.configure(threads=1)
     from astropy.table import Table
 
-    from comest_bayes.adaptive import AdaptiveSettings, package_fitter, run_sequential
-    from comest_bayes.design import uniform_design
+    from comest_bayes.pipeline.adaptive import AdaptiveSettings, package_fitter, run_sequential
+    from comest_bayes.inject.design import uniform_design
 
     pool, _, perm_a, refs = _pool_context(task)
     c = pool["cols"]

@@ -55,7 +55,7 @@ def make_image(size: int, seed: int = 1) -> np.ndarray:
 def child(backend: str, path: str, out_json: str) -> None:
     """Run in a fresh process: time detection and SFI, record peak memory."""
     from comest_bayes.config import DetectionConfig, SourceFreeConfig
-    from comest_bayes.detection import detect_array
+    from comest_bayes.detect.sep_backend import detect_array
     from comest_bayes.sourcefree import build_source_free
 
     data = np.load(path)
@@ -66,7 +66,7 @@ def child(backend: str, path: str, out_json: str) -> None:
     if backend == "sep":
         det = detect_array(data, mask=mask, zeropoint=30.0, config=cfg)
     else:
-        from comest_bayes.sextractor import detect_sextractor
+        from comest_bayes.detect.sextractor import detect_sextractor
 
         det = detect_sextractor(data, mask=mask, zeropoint=30.0, config=cfg)
     t_det = time.perf_counter() - t0

@@ -5,12 +5,12 @@ completeness (magnitudes uniform in [22, 27], depth ``d ~ N(0, 0.3)`` mag),
 and for the models ``logistic`` and ``logistic_depth``, measures in one
 process per model:
 
-* ``compress``: :func:`comest_bayes.likelihood.compress_for` (default grid),
+* ``compress``: :func:`comest_bayes.bayes.likelihood.compress_for` (default grid),
   and the number of binomial cells G it gives;
-* ``map``: :func:`comest_bayes.inference.fit_map` (6 starts), JAX compilation
+* ``map``: :func:`comest_bayes.bayes.inference.fit_map` (6 starts), JAX compilation
   for the data shape included (it is paid once per fit in the pipeline too);
 * ``laplace``: the Hessian and its inverse;
-* ``emcee``: :func:`comest_bayes.inference.sample_posterior` until every
+* ``emcee``: :func:`comest_bayes.bayes.inference.sample_posterior` until every
   parameter has ESS >= ``--min-ess`` (default 1000) and the chain is longer
   than 50 autocorrelation times.
 
@@ -39,8 +39,8 @@ from scipy import special
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
-from comest_bayes.inference import fit_map, laplace, sample_posterior  # noqa: E402
-from comest_bayes.likelihood import CompletenessModel, Covariates, compress_for  # noqa: E402
+from comest_bayes.bayes.inference import fit_map, laplace, sample_posterior  # noqa: E402
+from comest_bayes.bayes.likelihood import CompletenessModel, Covariates, compress_for  # noqa: E402
 from comest_bayes.seeding import rng_for  # noqa: E402
 
 

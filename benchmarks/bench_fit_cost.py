@@ -39,13 +39,13 @@ ROOT = HERE.parent
 MILLION = textwrap.dedent("""
     import json, os, sys, threading, time, warnings
     sys.path.insert(0, {root!r})
-    from comest_bayes import runtime
+    from comest_bayes.pipeline import runtime
     runtime.configure(threads=1)
     import numpy as np
-    from comest_bayes import synthetic as S
+    from comest_bayes.sim import synthetic as S
     from comest_bayes.config import RunConfig
-    from comest_bayes.fitting import fit_kind
-    from comest_bayes.ratios import magnitude_edges
+    from comest_bayes.bayes.fit import fit_kind
+    from comest_bayes.ratios.binned import magnitude_edges
     peak = {{"threads": 0}}
     def watch():
         while True:

@@ -1,6 +1,6 @@
 """Benchmark: are the completeness posterior's intervals honest when the truth is in no model's family?
 
-For every known completeness truth of :mod:`comest_bayes.synthetic` (a skewed
+For every known completeness truth of :mod:`comest_bayes.sim.synthetic` (a skewed
 faint end, a skewed bright end, a long faint tail, two populations, a low
 plateau with a slow roll-off, a width that changes across the image, and a
 plain logistic as the control; every one with m50 following the depth one for
@@ -11,7 +11,7 @@ one) and every number of injections N (3000, 30000, 300000 by default, with
    512 x 512 scene with a depth gradient, a chip gap and masked blobs;
    magnitudes uniform over the truth's range; detected ~ Bernoulli(f));
 2. fits it through the package's own path,
-   :func:`comest_bayes.fitting.fit_kind` (``covariates_from_outcomes`` ->
+   :func:`comest_bayes.bayes.fit.fit_kind` (``covariates_from_outcomes`` ->
    ``compress_for`` -> model selection / ``inference.fit`` ->
    ``CompletenessPosterior``) with ``--model`` (default ``auto``);
 3. reads off the posterior of the image-average m50, m90 and f at the truth's
@@ -86,7 +86,7 @@ _WORKER_STATE: dict = {}
 # --------------------------------------------------------------------------- worker
 
 def _scene(params: dict):
-    from comest_bayes.synthetic import make_scene
+    from comest_bayes.sim.synthetic import make_scene
 
     key = json.dumps(params, sort_keys=True)
     if _WORKER_STATE.get("scene_key") != key:
@@ -117,7 +117,7 @@ def _num(v):
 def run_replicate(task: dict) -> dict:
     """Draw, fit and measure one replicate (the worker entry point; picklable task in, JSON-ready dict out)."""
     # single-threaded numerics, set before jax (or a BLAS) is first imported in this process
-    from comest_bayes import runtime
+    from comest_bayes.pipeline import runtime
 
     runtime.configure(threads=1)  # one XLA/BLAS thread and the compilation cache, before the first jax use
     import inspect
@@ -125,10 +125,10 @@ def run_replicate(task: dict) -> dict:
 
     import numpy as np
 
-    from comest_bayes import ratios as R
-    from comest_bayes import synthetic as S
+    from comest_bayes.ratios import binned as R
+    from comest_bayes.sim import synthetic as S
     from comest_bayes.config import FitConfig, RunConfig
-    from comest_bayes.fitting import fit_kind
+    from comest_bayes.bayes.fit import fit_kind
 
     _WORKER_STATE["ntasks"] = _WORKER_STATE.get("ntasks", 0) + 1
     scene = _scene(task["scene"])
@@ -210,7 +210,7 @@ def truth_setup(names, scene) -> dict:
     """Exact image-average quantities, injection range and curve grid of each truth."""
     import numpy as np
 
-    from comest_bayes import synthetic as S
+    from comest_bayes.sim import synthetic as S
 
     out = {}
     for name in names:
@@ -431,7 +431,7 @@ def main(argv=None) -> int:
     p.add_argument("--summarise-only", action="store_true", help="only rebuild the summary from raw.json")
     a = p.parse_args(argv)
 
-    from comest_bayes import synthetic as S
+    from comest_bayes.sim import synthetic as S
     from comest_bayes.seeding import int_seed_for
 
     names = a.truths or list(S.TRUTHS)
@@ -530,7 +530,7 @@ def main(argv=None) -> int:
         "settings": settings, "sizes": sizes, "reps": reps,
         "machine": {"cpus": os.cpu_count(), "platform": platform.platform(), "python": platform.python_version()},
         "definitions": {
-            "truth": "exact average of f over every unmasked pixel of the scene (comest_bayes.synthetic)",
+            "truth": "exact average of f over every unmasked pixel of the scene (comest_bayes.sim.synthetic)",
             "posterior": "fit_kind(...) -> CompletenessPosterior; m50/m90 from magnitudes_at, f from "
                          "average_curve (the package's footprint-sample image average); central 68%/95% "
                          "intervals of the draws; a posterior with < 50% defined draws counts as a miss",

@@ -4,12 +4,12 @@ Builds a source-free-like SIZE x SIZE base image (default 8192, 0.26"/px;
 sky 1000 ADU plus Gaussian noise of sigma 10 ADU, a TAN WCS), a zero mask, a
 constant noise map and the baseline detection catalog of the bare image, all
 as files in a temporary directory, exactly as the pipeline hands them to its
-workers (:class:`comest_bayes.recovery.SimContext`).  It then runs NSIMS
+workers (:class:`comest_bayes.recover.realization.SimContext`).  It then runs NSIMS
 realizations per source kind -- 15 injections per arcmin^2 (about 19,000 per
 realization at 8192 px), magnitudes 20-26, Moffat PSF of FWHM 3.5 px, photon
 noise with a gain of 4 e-/ADU, SEP re-detection with the default detection
 settings, one-to-one matching, each result written to disk as the pipeline
-does -- through :func:`comest_bayes.executors.run_tasks`, once per worker
+does -- through :func:`comest_bayes.pipeline.executors.run_tasks`, once per worker
 count (1 and 2 by default), each in a fresh Python process.
 
 Measured per run: wall time per realization (total wall time / NSIMS, pool
@@ -57,7 +57,7 @@ if _REPO not in sys.path:
     sys.path.insert(0, _REPO)
 
 import comest_bayes  # noqa: E402
-from comest_bayes.recovery import RealizationTask, run_realization  # noqa: E402
+from comest_bayes.recover.realization import RealizationTask, run_realization  # noqa: E402
 
 PIXEL_SCALE = 0.26  # arcsec / px
 SKY = 1000.0  # ADU
@@ -102,7 +102,7 @@ def _wcs_header(size: int) -> str:
 def make_context(tmp: str, size: int, kinds: tuple, nsims: int):
     """The SimContext of the benchmark (files under ``tmp``, written by :func:`_setup`)."""
     from comest_bayes.config import DetectionConfig, InjectionConfig, MatchingConfig
-    from comest_bayes.recovery import SimContext
+    from comest_bayes.recover.realization import SimContext
 
     tmp = Path(tmp)
     inj = InjectionConfig(kinds=tuple(kinds), nsims=nsims, density=DENSITY, mag_range=MAG_RANGE)
@@ -118,7 +118,7 @@ def _setup(tmp: str, size: int, out_json: str) -> None:
     """Fresh process: write the base image, mask, noise map and baseline catalog."""
     from astropy.io import fits
 
-    from comest_bayes.detection import detect_array
+    from comest_bayes.detect.sep_backend import detect_array
 
     t0 = time.perf_counter()
     rng = np.random.default_rng(1)
@@ -158,9 +158,9 @@ def timed_realization(task: RealizationTask):
 
 def _run(tmp: str, size: int, kind: str, nsims: int, workers: int, out_json: str) -> None:
     """Fresh process: NSIMS realizations of one kind on ``workers`` processes."""
-    from comest_bayes.executors import run_tasks
-    from comest_bayes.injection import FLAG_DRAW_ERROR
-    from comest_bayes.recovery import write_realization
+    from comest_bayes.pipeline.executors import run_tasks
+    from comest_bayes.inject.render import FLAG_DRAW_ERROR
+    from comest_bayes.recover.realization import write_realization
 
     load_start = os.getloadavg()
     ctx = make_context(tmp, size, (kind,), nsims)
@@ -211,9 +211,9 @@ def _profile(tmp: str, size: int, kind: str, out_txt: str) -> None:
 
     import importlib
 
-    from comest_bayes.recovery import _arrays
+    from comest_bayes.recover.realization import _arrays
 
-    for name in ("comest_bayes.detection", "comest_bayes.injection"):
+    for name in ("comest_bayes.detect.sep_backend", "comest_bayes.inject.render"):
         importlib.import_module(name)  # imports are not what we profile
 
     ctx = make_context(tmp, size, (kind,), 1)

@@ -16,10 +16,10 @@ detections are blends measured 0.75 mag too bright.
 
 * injections: ``--ninj`` true magnitudes uniform in [19, 26], detected and
   measured that way; the completeness model ``logistic`` is fitted to their
-  outcomes with the package's own machinery (:func:`comest_bayes.inference.fit`),
-  giving a real :class:`~comest_bayes.posterior.CompletenessPosterior`, and the
+  outcomes with the package's own machinery (:func:`comest_bayes.bayes.inference.fit`),
+  giving a real :class:`~comest_bayes.bayes.posterior.CompletenessPosterior`, and the
   photometric transfer is measured from the detected ones
-  (:mod:`comest_bayes.transfer`);
+  (:mod:`comest_bayes.recover.transfer`);
 * population: a power law ``log_n = 4.3`` (deg^-2 mag^-1 at m = 23),
   ``slope = 0.3`` over 17-28 on ``--area`` deg^2, detected and measured the same way.
 
@@ -46,7 +46,7 @@ Rendered mock (end to end)
 One demo tile (1000 x 1000 px) whose point sources follow the same power law
 (``make_demo_tile(star_counts=(2e4, 0.3, 23))``, no galaxies), run through the
 pipeline (4 point-source realizations, ``logistic`` completeness), then
-:func:`comest_bayes.lf.run_lf` in joint and fixed mode.
+:func:`comest_bayes.lf.fit.run_lf` in joint and fixed mode.
 
 Usage::
 
@@ -106,10 +106,10 @@ def sample_powerlaw(rng, log_n, slope, area, lo, hi, m_ref=23.0):
 
 
 def fit_completeness(rng, ninj, seed):
-    from comest_bayes.inference import fit
-    from comest_bayes.likelihood import CompletenessModel, compress_for, covariates_from_outcomes
-    from comest_bayes.modelspec import load_spec
-    from comest_bayes.posterior import CompletenessPosterior
+    from comest_bayes.bayes.inference import fit
+    from comest_bayes.bayes.likelihood import CompletenessModel, compress_for, covariates_from_outcomes
+    from comest_bayes.bayes.spec import load_spec
+    from comest_bayes.bayes.posterior import CompletenessPosterior
 
     true = rng.uniform(19.0, 26.0, ninj)
     det, obs = detect_and_measure(rng, true)
@@ -143,9 +143,9 @@ def binned_shortcut(obs, post, lo, hi, width=0.25, area=AREA):
 
 
 def replicate(r, ninj, min_ess, area=AREA):
-    from comest_bayes.lf import build_inputs, fit_counts
+    from comest_bayes.lf.fit import build_inputs, fit_counts
     from comest_bayes.seeding import int_seed_for, rng_for
-    from comest_bayes.transfer import measure_transfer
+    from comest_bayes.recover.transfer import measure_transfer
 
     rng = rng_for(2024, "bench_lf", r)
     post, t_det, o_det = fit_completeness(rng, ninj, int_seed_for(2024, "bench_lf", "comp", r))
@@ -191,9 +191,9 @@ def summarise(reps):
 
 def rendered_mock(workdir: Path, min_ess):
     from comest_bayes.config import load_config
-    from comest_bayes.demo import MASK_GAP, make_demo_tile, write_demo_tile
-    from comest_bayes.lf import run_lf
-    from comest_bayes.pipeline import ComputeOptions, ImageOptions, run_pipeline
+    from comest_bayes.sim.demo import MASK_GAP, make_demo_tile, write_demo_tile
+    from comest_bayes.lf.fit import run_lf
+    from comest_bayes.pipeline.stages import ComputeOptions, ImageOptions, run_pipeline
 
     t0 = time.perf_counter()
     tile = make_demo_tile(seed=11, size=1000, galaxy_density=0.0, n_saturated_stars=0, star_counts=(2.0e4, 0.3, 23.0))

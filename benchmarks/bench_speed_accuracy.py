@@ -17,7 +17,7 @@ injections) four estimators of the completeness curve are compared:
 ``emcee``
     the same model, emcee posterior (to an effective sample size of 1000);
 ``auto``
-    what a user gets by default: :func:`comest_bayes.fitting.fit_kind` with
+    what a user gets by default: :func:`comest_bayes.bayes.fit.fit_kind` with
     ``--model auto`` (the ladder logistic -> logistic_depth ->
     richards_depth -> spline_depth chosen by Laplace LOO and the adequacy
     check, then the chosen model's importance-sampled posterior), averaged
@@ -28,7 +28,7 @@ Two scenes:
 ``analytic``
     point sources with a Gaussian PSF injected on pure white Gaussian
     noise.  The reference is exact: the closed-form detection probability of
-    :mod:`comest_bayes.analytic` (SEP's filtered-threshold semantics,
+    :mod:`comest_bayes.sim.analytic` (SEP's filtered-threshold semantics,
     averaged over sub-pixel positions); the benchmark also reports the m50
     of a very large injection pool, which checks the prediction.
 ``demo``
@@ -81,13 +81,13 @@ import numpy as np
 from astropy.io import fits
 from astropy.table import Table
 
-from comest_bayes import ratios as R
+from comest_bayes.ratios import binned as R
 from comest_bayes.config import load_config
-from comest_bayes.inference import fit_map, laplace, sample_posterior
-from comest_bayes.likelihood import CompletenessModel, Covariates, compress_for, covariates_from_outcomes
-from comest_bayes.modelspec import load_spec
-from comest_bayes.pipeline import ComputeOptions, ImageOptions, run_pipeline
-from comest_bayes.posterior import crossing_magnitudes
+from comest_bayes.bayes.inference import fit_map, laplace, sample_posterior
+from comest_bayes.bayes.likelihood import CompletenessModel, Covariates, compress_for, covariates_from_outcomes
+from comest_bayes.bayes.spec import load_spec
+from comest_bayes.pipeline.stages import ComputeOptions, ImageOptions, run_pipeline
+from comest_bayes.bayes.posterior import crossing_magnitudes
 
 HERE = Path(__file__).resolve().parent
 METHODS = ("binned", "auto", "map", "laplace", "emcee")
@@ -130,7 +130,7 @@ def analytic_scene(work: Path, *, size: int, sigma: float, fwhm_pix: float, zero
 
 
 def demo_scene(work: Path, *, size: int, seed: int) -> dict:
-    from comest_bayes.demo import MASK_GAP, make_demo_tile, write_demo_tile
+    from comest_bayes.sim.demo import MASK_GAP, make_demo_tile, write_demo_tile
 
     d = work / "demo_tile"
     if not (d / "done").exists():
@@ -266,7 +266,7 @@ def model_estimates(mag, det, noise, *, spec_name: str, seed: int, with_emcee: b
 def auto_estimate(mag, det, noise, *, seed: int, wide, noise_footprint, mag_range) -> dict:
     """The package's default fit (``auto``) of one subset: curves of the footprint average on ``wide``."""
     from comest_bayes.config import RunConfig
-    from comest_bayes.fitting import fit_kind
+    from comest_bayes.bayes.fit import fit_kind
 
     cols = {"mag": np.asarray(mag, float), "detected": np.asarray(det, bool)}
     if noise is not None:
@@ -338,7 +338,7 @@ def score_binned(b: dict, ref: dict, cpu: float) -> dict:
 
 
 def analytic_reference(facts: dict, mag_range, detection, noise_sigma: float) -> dict:
-    """Exact curve of the analytic scene: the closed form of :mod:`comest_bayes.analytic`.
+    """Exact curve of the analytic scene: the closed form of :mod:`comest_bayes.sim.analytic`.
 
     The closed form (peak pixel of the filtered image above DETECT_THRESH times
     the unfiltered sigma, averaged over the sub-pixel centre) is exact for
@@ -346,8 +346,8 @@ def analytic_reference(facts: dict, mag_range, detection, noise_sigma: float) ->
     DETECT_THRESH = 5, MINAREA = 1 (docs/analytic.md: within 0.01 mag of the
     measured m50 there).  ``noise_sigma`` is the sigma the detector measured.
     """
-    from comest_bayes import analytic
-    from comest_bayes.detection import filter_kernel
+    from comest_bayes.sim import analytic
+    from comest_bayes.detect.sep_backend import filter_kernel
 
     grid = np.arange(mag_range[0] - 1.0, mag_range[1] + 1.0 + 1e-9, 0.005)
     kernel = filter_kernel(detection.filter)
@@ -360,7 +360,7 @@ def analytic_reference(facts: dict, mag_range, detection, noise_sigma: float) ->
                                                  thresh=detection.thresh),
         lo=float(grid[0]), hi=float(grid[-1]))
     return {"grid": grid, "curve": p, "m50": float(m50), "noise_sigma": noise_sigma,
-            "source": "comest_bayes.analytic.detection_probability (closed form, sub-pixel average)"}
+            "source": "comest_bayes.sim.analytic.detection_probability (closed form, sub-pixel average)"}
 
 
 def pool_reference(mag, det, mag_range) -> dict:

@@ -29,15 +29,15 @@ _EXPORTS = {
     "ModelSummary": "api",
     "Interval": "api",
     "CompletenessFit": "api",
-    "CompletenessPosterior": "posterior",
+    "CompletenessPosterior": "bayes.posterior",
     "load_config": "config",
-    "write_report": "report",
+    "write_report": "report.html",
     "ComestError": "errors",
     "InputError": "errors",
     "ConfigError": "errors",
 }
 #: Public names defined under another name in their module.
-_RENAMED = {"fit_lf": ("lf", "run_lf")}
+_RENAMED = {"fit_lf": ("lf.fit", "run_lf")}
 
 __all__ = ["__version__", *_EXPORTS, *_RENAMED]
 

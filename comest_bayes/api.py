@@ -26,7 +26,7 @@ from pathlib import Path
 from types import MappingProxyType
 from typing import Callable, Mapping
 
-from .errors import ComestError, ConfigError, InputError, InputFileError
+from comest_bayes.errors import ComestError, ConfigError, InputError, InputFileError
 
 __all__ = ["run", "fit_completeness", "Run", "KindSummary", "ModelSummary", "Interval", "CompletenessFit",
            "config_from_options", "compute_from_options", "SHORTCUTS", "CATALOGS"]
@@ -76,7 +76,7 @@ def config_from_options(*, config=None, overrides=None, seed: int | None = None,
     ConfigError
         An unknown shortcut, or a value the configuration refuses.
     """
-    from .config import load_config
+    from comest_bayes.config import load_config
 
     unknown = sorted(set(shortcuts) - set(SHORTCUTS))
     if unknown:
@@ -103,12 +103,12 @@ def config_from_options(*, config=None, overrides=None, seed: int | None = None,
 
 def compute_from_options(*, ncpu: int | None = None, executor: str = "processes", scheduler: str | None = None,
                          progress: bool = False):
-    """Where realizations run (:class:`~comest_bayes.pipeline.ComputeOptions`); ``ncpu`` None: every core.
+    """Where realizations run (:class:`~comest_bayes.pipeline.stages.ComputeOptions`); ``ncpu`` None: every core.
 
     A ``scheduler`` address implies the Dask executor, as ``--scheduler`` does.
     """
-    from .executors import default_workers
-    from .pipeline import ComputeOptions
+    from comest_bayes.pipeline.executors import default_workers
+    from comest_bayes.pipeline.stages import ComputeOptions
 
     workers = ncpu if ncpu is not None else default_workers()
     if isinstance(workers, bool) or not isinstance(workers, int):
@@ -166,7 +166,7 @@ class ModelSummary:
 
     @classmethod
     def from_info(cls, d: Mapping | None) -> "ModelSummary | None":
-        """From the model facts of :func:`comest_bayes.info.model_facts`."""
+        """From the model facts of :func:`comest_bayes.io.info.model_facts`."""
         if not d:
             return None
         return cls(name=d.get("name"), requested=d.get("requested"), candidates=tuple(d.get("candidates") or ()),
@@ -198,7 +198,7 @@ class Run:
     """A run directory as typed values, read from its records (nothing is recomputed).
 
     Build it with :meth:`open` (or get it from :func:`run`).  The facts come
-    from :func:`comest_bayes.info.run_info`, which ``comest-bayes info``
+    from :func:`comest_bayes.io.info.run_info`, which ``comest-bayes info``
     prints; :attr:`info` keeps that whole record.
 
     Attributes
@@ -213,7 +213,7 @@ class Run:
         Every warning the run recorded (model fits, failed realizations,
         the source-free image).
     info : mapping
-        The full record of :func:`~comest_bayes.info.run_info`.
+        The full record of :func:`~comest_bayes.io.info.run_info`.
     """
 
     path: Path
@@ -225,7 +225,7 @@ class Run:
     @classmethod
     def open(cls, path) -> "Run":
         """Read a run directory (finished or partial); :class:`RunDirectoryError` when it is not one."""
-        from .info import run_info
+        from comest_bayes.io.info import run_info
 
         facts = run_info(path)
         kinds = {}
@@ -274,9 +274,9 @@ class Run:
 
         Returns
         -------
-        comest_bayes.posterior.CompletenessPosterior
+        comest_bayes.bayes.posterior.CompletenessPosterior
         """
-        from .posterior import CompletenessPosterior
+        from comest_bayes.bayes.posterior import CompletenessPosterior
 
         entry = self._kind(kind)
         if quantity not in ("completeness", "purity"):
@@ -302,7 +302,7 @@ class Run:
 
 
 def _image_fields() -> tuple:
-    from .pipeline import ImageOptions
+    from comest_bayes.pipeline.stages import ImageOptions
 
     return tuple(f.name for f in dataclasses.fields(ImageOptions) if f.name != "path")
 
@@ -364,7 +364,7 @@ def run(image, *, out, log: Callable[[str], None] | None = None, **options) -> R
         Every input error ``comest-bayes run`` reports (see the README), also
         before anything is written.
     """
-    from .pipeline import ImageOptions, run_pipeline
+    from comest_bayes.pipeline.stages import ImageOptions, run_pipeline
 
     _refuse_worker_reimport()
     facts = _image_fields()
@@ -387,7 +387,7 @@ def run(image, *, out, log: Callable[[str], None] | None = None, **options) -> R
     image_options = ImageOptions(path=str(image), **kw)
     result = run_pipeline(image_options, config, out, log=log, compute=compute)
     if not options.get("no_report"):
-        from .report import write_report
+        from comest_bayes.report.html import write_report
 
         try:  # as the command line does: a finished run stays finished when its report fails
             write_report(result.out_dir, log=log)  # logs where it wrote
@@ -407,13 +407,13 @@ class CompletenessFit:
     Attributes
     ----------
     kind : str
-    posterior : comest_bayes.posterior.CompletenessPosterior
+    posterior : comest_bayes.bayes.posterior.CompletenessPosterior
         The fitted (or selected and fitted) model's posterior.
     model : ModelSummary
         The chosen model, m50/m80/m90 with intervals, sampler and warnings.
     entry : mapping
         The whole ``summary.json`` entry (curve, parameters, selection table,
-        shape check; :mod:`comest_bayes.fitting` documents it).
+        shape check; :mod:`comest_bayes.bayes.fit` documents it).
     out : Path or None
         The output folder, or None when none was asked for.
     """
@@ -441,7 +441,7 @@ def fit_completeness(outcomes, out=None, *, kind: str = "injections", model: str
         Folder (new or empty) for ``summary.json``, the posterior and a
         figure; by default nothing is kept on disk.
     kind, model, columns, image_shape, seed
-        As :func:`comest_bayes.fitting.fit_outcome_file`.
+        As :func:`comest_bayes.bayes.fit.fit_outcome_file`.
     noise_map, mask : str, Path or 2-D array, optional
         Detection noise and bad pixels (non-zero = bad) of the image: the
         image average then covers every unmasked pixel.
@@ -454,9 +454,9 @@ def fit_completeness(outcomes, out=None, *, kind: str = "injections", model: str
     """
     import numpy as np
 
-    from .fitting import fit_outcome_file
-    from .info import model_facts
-    from .posterior import CompletenessPosterior
+    from comest_bayes.bayes.fit import fit_outcome_file
+    from comest_bayes.io.info import model_facts
+    from comest_bayes.bayes.posterior import CompletenessPosterior
 
     log = log or (lambda line: None)
     with tempfile.TemporaryDirectory(prefix="comest-fit-") as scratch:

@@ -34,8 +34,9 @@ import time
 import warnings
 from pathlib import Path
 
-from . import __version__, runtime
-from .errors import ComestError
+from comest_bayes import __version__
+from comest_bayes.pipeline import runtime
+from comest_bayes.errors import ComestError
 
 __all__ = ["main", "build_parser"]
 
@@ -168,7 +169,7 @@ def build_parser() -> argparse.ArgumentParser:
     rep.add_argument("--size", type=int, default=400, help="side of the image cutouts in pixels (default 400)")
     _add_output_options(rep.add_argument_group("output"))
 
-    from .lf import CLI_OPTIONS
+    from comest_bayes.lf.fit import CLI_OPTIONS
 
     lf = sub.add_parser("lf", help="fit number counts through the measured completeness and photometric transfer",
                         description="Fit a count model (power law, Schechter, double power law, or a TOML spec) to the "
@@ -219,7 +220,7 @@ def build_parser() -> argparse.ArgumentParser:
 
 def _config_from_args(args):
     """The run's configuration: one path for the command line and comest_bayes.run (api.config_from_options)."""
-    from .api import SHORTCUTS, config_from_options
+    from comest_bayes.api import SHORTCUTS, config_from_options
 
     return config_from_options(config=args.config, overrides=args.overrides, seed=args.seed, no_bnb=args.no_bnb,
                                precision_at=getattr(args, "precision_at", None),
@@ -227,14 +228,14 @@ def _config_from_args(args):
 
 
 def _compute_from_args(args):
-    from .api import compute_from_options
+    from comest_bayes.api import compute_from_options
 
     return compute_from_options(ncpu=args.ncpu, executor=args.executor, scheduler=args.scheduler,
                                 progress=_progress_enabled(args))
 
 
 def _cmd_fit(args, log) -> int:
-    from .fitting import fit_outcome_file
+    from comest_bayes.bayes.fit import fit_outcome_file
 
     shape = None
     if args.image_shape:
@@ -256,7 +257,7 @@ def _cmd_fit(args, log) -> int:
 
 
 def _cmd_run(args, log) -> int:
-    from .pipeline import ImageOptions, run_pipeline
+    from comest_bayes.pipeline.stages import ImageOptions, run_pipeline
 
     config = _config_from_args(args)
     options = ImageOptions(path=args.image, hdu=args.hdu, zp=args.zp, pixel_scale=args.pixel_scale, fwhm=args.fwhm,
@@ -272,7 +273,7 @@ def _report_after_run(out_dir, args, log):
     """Write the report at the end of run/demo; its failure does not fail the finished run."""
     if args.no_report:
         return None
-    from .report import write_report
+    from comest_bayes.report.html import write_report
 
     try:
         return write_report(out_dir, log=log)
@@ -302,7 +303,7 @@ def _final_summary(result, log, report=None) -> None:
 
 
 def _cmd_demo(args, log) -> int:
-    from .rundir import RunDirectory
+    from comest_bayes.io.rundir import RunDirectory
 
     config = _config_from_args(args)
     if args.size < 256:
@@ -322,8 +323,8 @@ def _cmd_demo(args, log) -> int:
 
 
 def _demo_locked(args, config, out: Path, compute, log) -> int:
-    from .demo import MASK_GAP, demo_seeing_pix, make_demo_tile, write_demo_tile
-    from .pipeline import ImageOptions, run_pipeline
+    from comest_bayes.sim.demo import MASK_GAP, demo_seeing_pix, make_demo_tile, write_demo_tile
+    from comest_bayes.pipeline.stages import ImageOptions, run_pipeline
 
     inputs = out / "inputs"
     image_path = inputs / "demo_image.fits"
@@ -356,7 +357,7 @@ def _demo_locked(args, config, out: Path, compute, log) -> int:
 
 
 def _cmd_report(args, log) -> int:
-    from .report import write_report
+    from comest_bayes.report.html import write_report
 
     if args.size < 16:
         raise ComestError(f"--size {args.size} is too small for an image cutout; use at least 16 pixels.")
@@ -365,7 +366,7 @@ def _cmd_report(args, log) -> int:
 
 
 def _cmd_info(args, log) -> int:
-    from .info import format_info, run_info
+    from comest_bayes.io.info import format_info, run_info
 
     info = run_info(args.dir)
     print(json.dumps(info, indent=2) if args.json else format_info(info))
@@ -373,7 +374,7 @@ def _cmd_info(args, log) -> int:
 
 
 def _cmd_lf(args, log) -> int:
-    from .lf import CLI_OPTIONS, run_lf
+    from comest_bayes.lf.fit import CLI_OPTIONS, run_lf
 
     kwargs = {kw["dest"]: getattr(args, kw["dest"]) for kw in CLI_OPTIONS.values()}
     if kwargs.get("mag_range") is not None:
@@ -382,7 +383,7 @@ def _cmd_lf(args, log) -> int:
     result = run_lf(args.dir, log=log, **kwargs)
     log(f"lf: {result.name} done in {time.perf_counter() - t0:.1f} s")
     if not args.no_report:
-        from .report import write_report
+        from comest_bayes.report.html import write_report
 
         try:
             log(f"report: {write_report(args.dir, log=lambda s: None)}")
@@ -432,7 +433,7 @@ def main(argv=None) -> int:
     except OSError as exc:  # the operating system refused: a full disk, an unreadable file, a vanished folder
         if args.debug:
             raise
-        from .rundir import os_reason
+        from comest_bayes.io.rundir import os_reason
 
         where = f" ({exc.filename!r})" if getattr(exc, "filename", None) else ""
         print(f"error: {os_reason(exc)}{where}. Fix this, then rerun the same command to resume.", file=sys.stderr)

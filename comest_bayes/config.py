@@ -42,8 +42,8 @@ if sys.version_info >= (3, 11):
 else:  # pragma: no cover - exercised on Python 3.10 only
     import tomli as tomllib
 
-from .errors import ConfigError
-from .jsonio import jsonable
+from comest_bayes.errors import ConfigError
+from comest_bayes.io.jsonio import jsonable
 
 __all__ = [
     "AdaptiveConfig",
@@ -260,7 +260,7 @@ class InjectionConfig:
     density : float
         Mean number of injections per arcmin^2 of unmasked area (Poisson-drawn);
         0 (default) for automatic, per kind from the image
-        (:func:`comest_bayes.preflight.choose_density`): ComEst's published 15,
+        (:func:`comest_bayes.pipeline.preflight.choose_density`): ComEst's published 15,
         raised on a small field of fine pixels towards 100 per realization (at
         most a quarter injection per background mesh and half of what random
         packing holds at the minimum separation), lowered to what the placement
@@ -284,7 +284,7 @@ class InjectionConfig:
     moffat_beta : float
         Moffat beta; 0 (default) for the median beta of the Moffat fits to
         the image's stars, or 3 when they could not be fitted (see
-        :func:`comest_bayes.psf.injection_psf`).
+        :func:`comest_bayes.detect.psf.injection_psf`).
     hlr_range, q_range, bulge_fraction_range, sersic_n_range : tuple of float
         Uniform ranges of half-light radius (arcsec), axis ratio, bulge flux
         fraction and Sersic index.

@@ -42,8 +42,8 @@ import numpy as np
 import sep
 from scipy import ndimage
 
-from .config import SourceFreeConfig
-from .errors import InputError
+from comest_bayes.config import SourceFreeConfig
+from comest_bayes.errors import InputError
 
 __all__ = ["SourceFreeResult", "build_source_free", "removal_radii", "dilated_footprint", "judge_replacement",
            "format_percent", "BACKGROUND_SHIFT_WARN_SIGMA", "NOISE_RATIO_WARN"]
@@ -228,7 +228,7 @@ def build_source_free(data, detection, *, mask, fwhm, config: SourceFreeConfig =
     data : ndarray, shape (ny, nx)
         Observed image *including* its sky, image units; masked pixels may hold
         anything finite (``load_image`` sets them to 0).
-    detection : comest_bayes.detection.DetectionResult
+    detection : comest_bayes.detect.sep_backend.DetectionResult
         Detection on ``data``: ``catalog``, ``segmentation``, ``background``,
         ``rms``, ``noise`` (same shape as ``data``) and ``meta``.
     mask : ndarray of bool, shape (ny, nx), or None
@@ -270,7 +270,7 @@ def build_source_free(data, detection, *, mask, fwhm, config: SourceFreeConfig =
         raise InputError(f"fwhm must be a number of pixels; got {fwhm!r}.") from None
     if not np.isfinite(fwhm) or fwhm <= 0:
         raise InputError(f"fwhm must be a positive number of pixels; got {fwhm!r}. Estimate it with "
-                         f"comest_bayes.psf.estimate_fwhm or pass --fwhm.")
+                         f"comest_bayes.detect.psf.estimate_fwhm or pass --fwhm.")
     data = np.ascontiguousarray(data, dtype=np.float32)
     if not np.all(np.isfinite(data[~mask])):
         raise InputError("the image holds NaN or infinite values in unmasked pixels; mask them first.")

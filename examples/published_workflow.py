@@ -4,7 +4,7 @@ ComEst (Chiu, Desai & Liu 2016, Astronomy and Computing 16, 79) ships an
 example script (``example/Example.py`` in github.com/inonchiu/ComEst) that
 runs its whole method on a DECam cutout.  This script runs the same steps
 with comest-bayes on a synthetic DECam-like tile whose truth is known
-(:func:`comest_bayes.demo.make_demo_tile`: 0.26"/px, 0.9" Moffat seeing, a
+(:func:`comest_bayes.sim.demo.make_demo_tile`: 0.26"/px, 0.9" Moffat seeing, a
 weight map, a chip gap, galaxies and stars), through the Python API:
 
 1. **Detect** every source on the image.  The published run used SExtractor
@@ -148,9 +148,9 @@ def format_table(kind: str, on: str, entry: dict) -> list[str]:
 def main(argv=None) -> int:
     args = build_parser().parse_args(argv)
     from comest_bayes.config import load_config
-    from comest_bayes.demo import MASK_GAP, make_demo_tile, write_demo_tile
+    from comest_bayes.sim.demo import MASK_GAP, make_demo_tile, write_demo_tile
     from comest_bayes.errors import ComestError
-    from comest_bayes.pipeline import ComputeOptions, ImageOptions, run_pipeline
+    from comest_bayes.pipeline.stages import ComputeOptions, ImageOptions, run_pipeline
 
     def log(line: str) -> None:
         if not args.quiet:

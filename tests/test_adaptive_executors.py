@@ -15,8 +15,8 @@ import pytest
 from astropy.table import Table
 
 from comest_bayes.config import load_config
-from comest_bayes.demo import MASK_GAP, make_demo_tile, write_demo_tile
-from comest_bayes.pipeline import ComputeOptions, ImageOptions, run_pipeline
+from comest_bayes.sim.demo import MASK_GAP, make_demo_tile, write_demo_tile
+from comest_bayes.pipeline.stages import ComputeOptions, ImageOptions, run_pipeline
 
 pytestmark = pytest.mark.slow
 

@@ -7,8 +7,8 @@ import pytest
 from astropy.table import Table
 
 from comest_bayes.config import load_config
-from comest_bayes.demo import MASK_GAP, make_demo_tile, write_demo_tile
-from comest_bayes.pipeline import ComputeOptions, ImageOptions, run_pipeline
+from comest_bayes.sim.demo import MASK_GAP, make_demo_tile, write_demo_tile
+from comest_bayes.pipeline.stages import ComputeOptions, ImageOptions, run_pipeline
 
 PILOT = 2
 
@@ -114,7 +114,7 @@ def test_the_pilot_is_the_published_design_and_the_transfer_does_not_depend_on_t
 
 
 def test_the_report_charts_precision_against_injections(adaptive_run):
-    from comest_bayes.report import write_report
+    from comest_bayes.report.html import write_report
 
     out, _ = adaptive_run
     html = write_report(out).read_text()
@@ -153,7 +153,7 @@ def _noisy(real):
 def f_run(tile, tmp_path_factory):
     """An adaptive run aimed at f at 23.5 and 24.0 mag (a target it cannot reach in 3 realizations), whose
     realizations warn."""
-    import comest_bayes.recovery as recovery
+    import comest_bayes.recover.realization as recovery
 
     out = tmp_path_factory.mktemp("adaptive_f") / "run"
     lines = []
@@ -175,7 +175,7 @@ def test_the_workers_warnings_reach_the_log_once_each(f_run):
 
 def test_the_f_target_is_designed_recorded_reported_and_shown(f_run, capsys):
     from comest_bayes.cli import main
-    from comest_bayes.report import write_report
+    from comest_bayes.report.html import write_report
 
     out, lines = f_run
     ad = json.loads((out / "summary.json").read_text())["adaptive"]

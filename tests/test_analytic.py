@@ -8,19 +8,16 @@ import numpy as np
 import pytest
 from scipy import signal, special
 
-from comest_bayes.analytic import (DEFAULT_MOFFAT_BETA, default_half_size, detection_probability,
-                                   detection_probability_mc, enclosed_flux, filtered_noise_covariance,
-                                   filtered_peak, kernel_norm, moffat_alpha, peak_probability, predict,
-                                   predicted_m50, psf_image)
+from comest_bayes.sim.analytic import (DEFAULT_MOFFAT_BETA, default_half_size, detection_probability, detection_probability_mc, enclosed_flux, filtered_noise_covariance, filtered_peak, kernel_norm, moffat_alpha, peak_probability, predict, predicted_m50, psf_image)
 from comest_bayes.config import DetectionConfig, InjectionConfig
-from comest_bayes.detection import detect_array, filter_kernel
+from comest_bayes.detect.sep_backend import detect_array, filter_kernel
 from comest_bayes.errors import InputError
-from comest_bayes.inference import fit_map, laplace
-from comest_bayes.injection import StampRenderer, make_truth, render_truth
-from comest_bayes.likelihood import CompletenessModel, Covariates, compress
-from comest_bayes.matching import match_one_to_one
+from comest_bayes.bayes.inference import fit_map, laplace
+from comest_bayes.inject.render import StampRenderer, make_truth, render_truth
+from comest_bayes.bayes.likelihood import CompletenessModel, Covariates, compress
+from comest_bayes.recover.matching import match_one_to_one
 from comest_bayes.seeding import rng_for
-from comest_bayes.sources import DEFAULT_MOFFAT_BETA as SOURCES_DEFAULT_BETA, make_psf
+from comest_bayes.inject.sources import DEFAULT_MOFFAT_BETA as SOURCES_DEFAULT_BETA, make_psf
 
 DEFAULT = filter_kernel("default")
 

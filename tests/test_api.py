@@ -16,7 +16,7 @@ from astropy.table import Table
 import comest_bayes as cb
 from comest_bayes import api
 from comest_bayes.cli import _config_from_args, build_parser
-from comest_bayes.demo import make_demo_tile, write_demo_tile
+from comest_bayes.sim.demo import make_demo_tile, write_demo_tile
 from comest_bayes.errors import ComestError, ConfigError, InputError, InputFileError, RunDirectoryError
 
 from conftest import REPO_ROOT
@@ -48,7 +48,11 @@ def test_import_pulls_in_neither_jax_nor_galsim_nor_matplotlib():
 
 
 def test_every_exported_name_is_the_object_of_its_module():
-    from comest_bayes import config, errors, lf, posterior, report
+    from comest_bayes import config
+    from comest_bayes import errors
+    from comest_bayes.lf import fit as lf
+    from comest_bayes.bayes import posterior
+    from comest_bayes.report import html as report
 
     expected = {"run": api.run, "fit_completeness": api.fit_completeness, "Run": api.Run,
                 "KindSummary": api.KindSummary, "ModelSummary": api.ModelSummary, "Interval": api.Interval,
@@ -225,7 +229,7 @@ def test_the_run_object_holds_summary_json_and_reads_the_run(readme_run):
     assert point.model.m90.median == entry["model"]["m90"]["median"]
     assert dict(point.counts) == entry["counts"] and point.mag_range == tuple(entry["mag_range"])
     assert point.purity_model is not None  # skipped or fitted, it is recorded
-    from comest_bayes.info import run_info
+    from comest_bayes.io.info import run_info
 
     assert run.warnings == tuple(run_info(where / "run1")["warnings"])
     # catalogs: every injection is matched or not; the outcome table holds the usable ones

@@ -200,7 +200,7 @@ def _prepare_out(case: str, tmp_path: Path) -> tuple[Path, dict]:
         out.mkdir()
         (out / "notes.txt").write_text("precious")
     elif case == "out_holds_another_run":
-        from comest_bayes.rundir import RunDirectory
+        from comest_bayes.io.rundir import RunDirectory
 
         RunDirectory(out, {"input": {}, "config": {"seed": 99}}).open().release()
     elif case == "out_in_use":

@@ -5,9 +5,9 @@ import warnings
 import numpy as np
 import pytest
 
-from comest_bayes.checks import P_WARN, shape_check, shape_warning
-from comest_bayes.inference import fit_map, laplace
-from comest_bayes.likelihood import CompletenessModel, Covariates, compress
+from comest_bayes.bayes.checks import P_WARN, shape_check, shape_warning
+from comest_bayes.bayes.inference import fit_map, laplace
+from comest_bayes.bayes.likelihood import CompletenessModel, Covariates, compress
 
 EDGES = np.arange(21.0, 26.01, 0.2)
 

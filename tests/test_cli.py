@@ -7,7 +7,7 @@ import pytest
 from astropy.io import fits
 from astropy.table import Table
 
-from comest_bayes import synthetic as S
+from comest_bayes.sim import synthetic as S
 from comest_bayes.cli import build_parser, main
 
 SUBCOMMANDS = ("run", "demo", "report", "lf", "fit", "info")
@@ -121,7 +121,7 @@ def _entry(name, m50, lo68, hi68, lo95, hi95, **extra):
 @pytest.fixture
 def finished_run(tmp_path):
     """A run directory as a finished run leaves it: run.json with its stages, summary.json, a few files."""
-    from comest_bayes.rundir import RunDirectory
+    from comest_bayes.io.rundir import RunDirectory
 
     out = tmp_path / "run"
     config = {"seed": 7, "injection": {"kinds": ["point", "buldisk"], "nsims": 3, "density": 15.0},
@@ -191,7 +191,7 @@ def test_info_json_holds_the_same_facts(finished_run, capsys):
 
 
 def test_info_on_a_partial_run_says_what_is_missing(tmp_path, capsys):
-    from comest_bayes.rundir import RunDirectory
+    from comest_bayes.io.rundir import RunDirectory
 
     out = tmp_path / "partial"
     run = RunDirectory(out, {"config": {"injection": {"kinds": ["point"], "nsims": 4}}}).open()
@@ -216,7 +216,7 @@ def test_info_on_a_partial_run_says_what_is_missing(tmp_path, capsys):
 
 def test_a_reader_that_goes_away_is_no_error(finished_run, monkeypatch, capsys):
     # `comest-bayes info DIR | head -1`: printing raises BrokenPipeError once head has exited
-    import comest_bayes.info as info_module
+    import comest_bayes.io.info as info_module
 
     def closed_pipe(info):
         raise BrokenPipeError(32, "Broken pipe")

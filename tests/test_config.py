@@ -8,8 +8,7 @@ import subprocess
 
 import pytest
 
-from comest_bayes.config import (DetectionConfig, RunConfig, SourceFreeConfig, load_config,
-                                 parse_override)
+from comest_bayes.config import DetectionConfig, RunConfig, SourceFreeConfig, load_config, parse_override
 from comest_bayes.errors import ConfigError
 
 #: SExtractor's built-in defaults (SExtractor manual; ``source-extractor -dd``), by our key.

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 from scipy.special import gamma
 
-from comest_bayes.counts import CountModel, list_count_specs, load_count_spec
+from comest_bayes.lf.counts import CountModel, list_count_specs, load_count_spec
 from comest_bayes.errors import ConfigError
 
 

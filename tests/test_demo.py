@@ -1,4 +1,4 @@
-"""Tests of the built-in demo tile (comest_bayes.demo).
+"""Tests of the built-in demo tile (comest_bayes.sim.demo).
 
 Statistical tests use fixed seeds; each states its tolerance and why.
 The tiles here are small (<= 600 px) so the file runs in well under a minute.
@@ -17,12 +17,10 @@ from scipy import ndimage, optimize, stats
 from scipy.spatial import cKDTree
 
 from comest_bayes.config import DetectionConfig
-from comest_bayes.demo import (DEMO_FILES, MASK_GAP, MASK_SATURATED, demo_truth_catalog, galaxy_number_density,
-                               make_demo_tile, median_hlr_arcsec, noise_factor_map, star_number_density,
-                               write_demo_tile)
-from comest_bayes.detection import detect_array
+from comest_bayes.sim.demo import (DEMO_FILES, MASK_GAP, MASK_SATURATED, demo_truth_catalog, galaxy_number_density, make_demo_tile, median_hlr_arcsec, noise_factor_map, star_number_density, write_demo_tile)
+from comest_bayes.detect.sep_backend import detect_array
 from comest_bayes.errors import InputError
-from comest_bayes.image import load_image
+from comest_bayes.io.image import load_image
 
 SKY = 300.0
 GAIN = 15.0

@@ -1,10 +1,10 @@
-"""Tests of comest_bayes.depth: S/N limiting magnitudes and number-count completeness."""
+"""Tests of comest_bayes.ratios.depth: S/N limiting magnitudes and number-count completeness."""
 
 import numpy as np
 import pytest
 from scipy.special import erf
 
-from comest_bayes.depth import histogram_completeness, limiting_magnitude, point_source_depth
+from comest_bayes.ratios.depth import histogram_completeness, limiting_magnitude, point_source_depth
 from comest_bayes.errors import InputError
 
 

@@ -1,6 +1,6 @@
 """Why point-source m50 sits 0.1-0.7 mag brighter than the 5-sigma depth, and the noise-correlation term.
 
-``comest_bayes.depth.m50_depth_offset`` predicts ``m5 - m50`` (the reported 5-sigma optimal-
+``comest_bayes.ratios.depth.m50_depth_offset`` predicts ``m5 - m50`` (the reported 5-sigma optimal-
 photometry depth minus the 50% completeness magnitude) from the PSF and the detection settings
 alone; ``docs/depth.md`` explains its three terms.  Here it is checked against known numbers and
 against the package's own injector and detector on white noise, and the correlated-noise Monte
@@ -16,14 +16,14 @@ from scipy import signal
 from scipy.optimize import minimize
 from scipy.special import log_ndtr
 
-from comest_bayes.analytic import correlated_noise_kernel, noise_autocorrelation, predict
+from comest_bayes.sim.analytic import correlated_noise_kernel, noise_autocorrelation, predict
 from comest_bayes.config import DetectionConfig, InjectionConfig
-from comest_bayes.depth import m50_depth_offset, noise_equivalent_area, point_source_depth_nea
-from comest_bayes.detection import detect_array, filter_kernel
-from comest_bayes.injection import make_truth, render_truth
-from comest_bayes.matching import match_one_to_one
+from comest_bayes.ratios.depth import m50_depth_offset, noise_equivalent_area, point_source_depth_nea
+from comest_bayes.detect.sep_backend import detect_array, filter_kernel
+from comest_bayes.inject.render import make_truth, render_truth
+from comest_bayes.recover.matching import match_one_to_one
 from comest_bayes.seeding import rng_for
-from comest_bayes.sources import make_psf
+from comest_bayes.inject.sources import make_psf
 
 DEFAULT = filter_kernel("default")
 FWHM_PER_SIGMA = 2.0 * math.sqrt(2.0 * math.log(2.0))

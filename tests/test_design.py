@@ -5,8 +5,8 @@ import math
 import numpy as np
 import pytest
 
-from comest_bayes.adaptive import AdaptiveSettings, PosteriorView, run_sequential
-from comest_bayes.design import MagnitudeDesign, curves_at, design_from_draws, uniform_design, variance_reduction
+from comest_bayes.pipeline.adaptive import AdaptiveSettings, PosteriorView, run_sequential
+from comest_bayes.inject.design import (MagnitudeDesign, curves_at, design_from_draws, uniform_design, variance_reduction)
 from comest_bayes.errors import InputError
 
 
@@ -333,7 +333,7 @@ def test_a_precision_read_off_an_unconverged_posterior_does_not_stop_the_loop():
     # The pool benchmark found a run that stopped at "precision reached" on a posterior whose importance
     # sampling failed and whose emcee fallback did not converge (m50 0.016 mag off, +-0.001).  The same
     # narrow draws with converged=False must give the next design instead (or, at the cap, say why).
-    from comest_bayes.adaptive import PosteriorView, after_batch
+    from comest_bayes.pipeline.adaptive import PosteriorView, after_batch
 
     grid = np.linspace(22.0, 26.0, 81)
     rng = np.random.default_rng(4)

@@ -13,11 +13,11 @@ import pytest
 import sep
 from scipy.spatial import cKDTree
 
-from comest_bayes.catalog import DETECTION_COLUMNS, FLAG_EDGE, FLAG_MASKED, FLAG_SATURATED
+from comest_bayes.detect.catalog import DETECTION_COLUMNS, FLAG_EDGE, FLAG_MASKED, FLAG_SATURATED
 from comest_bayes.config import DetectionConfig
-from comest_bayes.detection import DEFAULT_CONV, detect, detect_array, filter_kernel, noise_map
+from comest_bayes.detect.sep_backend import DEFAULT_CONV, detect, detect_array, filter_kernel, noise_map
 from comest_bayes.errors import ConfigError, DetectionOverflowError, InputError
-from comest_bayes.image import load_image
+from comest_bayes.io.image import load_image
 from conftest import FWHM_PER_SIGMA, render_point_sources, write_fits_file
 
 ZP = 25.0
@@ -673,9 +673,9 @@ def test_fast_path_without_the_check_trusts_the_caller_and_with_it_refuses_nan()
 def test_sextractor_backend_accepts_the_fast_path_options(tmp_path):
     # detect_with_backend passes the SEP-only options to SEP and drops them for SExtractor, which
     # reads the image from its own file: the input is unchanged and the result the normal one.
-    from comest_bayes.detection import detect_with_backend
+    from comest_bayes.detect.sep_backend import detect_with_backend
     from comest_bayes.errors import BackendUnavailableError
-    from comest_bayes.sextractor import find_sextractor
+    from comest_bayes.detect.sextractor import find_sextractor
 
     try:
         find_sextractor()

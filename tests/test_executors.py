@@ -9,7 +9,7 @@ import time
 
 import pytest
 
-from comest_bayes.executors import run_tasks
+from comest_bayes.pipeline.executors import run_tasks
 
 pytestmark = pytest.mark.skipif(not sys.platform.startswith("linux"), reason="reads process states from /proc")
 
@@ -35,7 +35,7 @@ def test_workers_exit_when_only_the_main_process_is_killed(tmp_path):
     '''))
     main = textwrap.dedent(f'''
         import slow_task
-        from comest_bayes.executors import run_tasks
+        from comest_bayes.pipeline.executors import run_tasks
         run_tasks(slow_task.task, [{str(marks)!r}] * 2, on_result=lambda t, r: None, executor="processes", workers=2)
     ''')
     env = dict(os.environ, PYTHONPATH=os.pathsep.join([str(tmp_path), os.environ.get("PYTHONPATH", "")]))
@@ -101,7 +101,7 @@ def _pid_after(seconds):
 def test_a_runner_keeps_its_workers_across_batches():
     # One pool for every batch of a run (injection, adaptive batches, fits): the second batch runs in the
     # same worker processes as the first, none of them this process; a closed runner has no workers left.
-    from comest_bayes.executors import TaskRunner
+    from comest_bayes.pipeline.executors import TaskRunner
 
     seen = []
     with TaskRunner("processes", 2) as runner:
@@ -119,7 +119,7 @@ def test_a_runner_keeps_its_workers_across_batches():
 
 
 def test_serial_runner_runs_here_in_order():
-    from comest_bayes.executors import TaskRunner
+    from comest_bayes.pipeline.executors import TaskRunner
 
     out = []
     with TaskRunner("serial") as runner:

@@ -8,11 +8,11 @@ from astropy.io import fits
 from astropy.table import Table
 from astropy.wcs import WCS, Sip
 
-from comest_bayes.catalog import fits_unit, set_image_units
+from comest_bayes.detect.catalog import fits_unit, set_image_units
 from comest_bayes.config import load_config
-from comest_bayes.demo import MASK_GAP, make_demo_tile, write_demo_tile
-from comest_bayes.pipeline import ComputeOptions, ImageOptions, run_pipeline
-from comest_bayes.summary import map_cube_header
+from comest_bayes.sim.demo import MASK_GAP, make_demo_tile, write_demo_tile
+from comest_bayes.pipeline.stages import ComputeOptions, ImageOptions, run_pipeline
+from comest_bayes.ratios.summary import map_cube_header
 
 
 @pytest.fixture(scope="module")

@@ -8,8 +8,8 @@ import pytest
 from astropy.table import Table
 
 from comest_bayes.config import load_config
-from comest_bayes.fitting import fit_kind, purity_outcomes
-from comest_bayes.posterior import CompletenessPosterior
+from comest_bayes.bayes.fit import fit_kind, purity_outcomes
+from comest_bayes.bayes.posterior import CompletenessPosterior
 
 SHAPE = (400, 600)
 SPLIT = 330  # x where the shallow part starts
@@ -151,7 +151,7 @@ def test_two_pass_crossing_magnitudes_equal_the_full_fine_grid():
     # magnitudes_at locates the crossings on a 0.1 mag grid, then refines on a 0.01 mag grid over the window
     # they span only; the result must equal the crossing on the fine grid over the whole range (the two fine
     # grids are offset from each other, so linear interpolation differs by < ~1e-4 mag near m80/m90)
-    from comest_bayes.posterior import crossing_magnitudes
+    from comest_bayes.bayes.posterior import crossing_magnitudes
 
     table, noise_map = _outcomes(3000, seed=9)
     post, _ = _fit(table, noise_map, "logistic_depth", min_ess=100)
@@ -189,7 +189,7 @@ def test_a_warm_refit_equals_a_cold_fit_of_the_same_model():
     # The adaptive design refits the chosen model after every batch from the previous posterior (Newton steps
     # from its median).  With the same data and seed, the warm refit must land on the cold fit's posterior:
     # medians and 68% intervals of m50 within 0.15 posterior sd (both have ESS >= 400: Monte Carlo ~0.05 sd).
-    from comest_bayes.fitting import warm_state
+    from comest_bayes.bayes.fit import warm_state
     from comest_bayes.errors import InputError
 
     first, noise_map = _outcomes(3000, seed=5)

@@ -10,10 +10,10 @@ rungs as inadequate, and the reported intervals must hold the truth.
 import numpy as np
 import pytest
 
-from comest_bayes import synthetic as S
+from comest_bayes.sim import synthetic as S
 from comest_bayes.config import RunConfig
-from comest_bayes.fitting import fit_kind
-from comest_bayes.ratios import magnitude_edges
+from comest_bayes.bayes.fit import fit_kind
+from comest_bayes.ratios.binned import magnitude_edges
 
 
 @pytest.fixture(scope="module")

@@ -17,8 +17,7 @@ import sep
 from astropy.io import fits
 
 from comest_bayes.errors import InputError, InputFileError
-from comest_bayes.image import (GAIN_KEYWORDS, SATURATION_KEYWORDS, ZP_KEYWORDS, ImageData, SkyStats, decide_gain,
-                                load_image, parse_bunit, sky_statistics)
+from comest_bayes.io.image import (GAIN_KEYWORDS, SATURATION_KEYWORDS, ZP_KEYWORDS, ImageData, SkyStats, decide_gain, load_image, parse_bunit, sky_statistics)
 from conftest import tan_header
 
 SHAPE = (48, 64)  # (ny, nx): non-square, so a transposed array would be caught
@@ -664,7 +663,7 @@ def test_gain_decision_is_in_the_facts(write_fits):
 
 def test_pipeline_options_carry_the_decided_gain(write_fits):
     # The pipeline hands image.gain to the detector and, through SimContext, to the injections' photon noise.
-    from comest_bayes.pipeline import ImageOptions
+    from comest_bayes.pipeline.stages import ImageOptions
 
     data = np.random.default_rng(1).normal(0.0, 0.05, SHAPE).astype(np.float32)
     path = write_fits("nmgy.fits", data, gain_header(BUNIT="nanomaggies", GAIN=4.0, MAGZERO=22.5))
@@ -675,7 +674,7 @@ def test_pipeline_options_carry_the_decided_gain(write_fits):
 
 def test_pipeline_logs_the_gain_first(write_fits, tmp_path):
     from comest_bayes.config import RunConfig
-    from comest_bayes.pipeline import ImageOptions, run_pipeline
+    from comest_bayes.pipeline.stages import ImageOptions, run_pipeline
 
     class Stop(Exception):
         pass

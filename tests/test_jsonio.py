@@ -7,7 +7,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from comest_bayes.jsonio import dumps, json_float, jsonable
+from comest_bayes.io.jsonio import dumps, json_float, jsonable
 
 
 def test_non_finite_numbers_become_null_everywhere():
@@ -37,7 +37,7 @@ def test_unknown_objects_are_refused_unless_a_fallback_is_given():
 
 def test_run_json_uses_the_rule(tmp_path):
     # a NaN reaching run.json is written as null (Python's json would write the invalid token NaN)
-    from comest_bayes.rundir import RunDirectory
+    from comest_bayes.io.rundir import RunDirectory
 
     run = RunDirectory(tmp_path / "run", {"image": "x", "value": np.float64(1.0)}).open()
     run.update(timings={"fit": float("nan"), "inject": np.float32(2.5)})

@@ -21,7 +21,7 @@ import numpy as np
 import pytest
 
 from comest_bayes.cli import main
-from comest_bayes.demo import MASK_GAP, make_demo_tile, write_demo_tile
+from comest_bayes.sim.demo import MASK_GAP, make_demo_tile, write_demo_tile
 
 #: The child: install the hang for the case named in argv[1], then run the CLI with argv[3:].
 DRIVER = r'''
@@ -30,7 +30,8 @@ from pathlib import Path
 
 case, marker, args = sys.argv[1], Path(sys.argv[2]), sys.argv[3:]
 
-from comest_bayes import fitting, posterior, rundir
+from comest_bayes.bayes import fit as fitting, posterior
+from comest_bayes.io import rundir
 
 def hang():
     marker.write_text(str(os.getpid()))
@@ -186,7 +187,7 @@ def test_kill_during_the_fits_then_resume_redoes_only_unfinished_fits(case, tile
 
 def test_a_realization_that_failed_and_then_ran_gets_its_kind_refitted(tile, reference, tmp_path, capsys,
                                                                       monkeypatch):
-    import comest_bayes.recovery as recovery
+    import comest_bayes.recover.realization as recovery
 
     run_realization = recovery.run_realization
 

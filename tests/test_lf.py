@@ -8,12 +8,12 @@ import pytest
 from astropy.io import fits
 from astropy.table import Table
 
-from comest_bayes.counts import CountModel
+from comest_bayes.lf.counts import CountModel
 from comest_bayes.errors import ConfigError, InputError, InputFileError
-from comest_bayes.lf import LFModel, LFResult, LFWarning, build_inputs, effective_area, fit_counts, run_lf
-from comest_bayes.modelspec import load_spec
-from comest_bayes.posterior import CompletenessPosterior
-from comest_bayes.transfer import PhotometricTransfer, measure_transfer
+from comest_bayes.lf.fit import LFModel, LFResult, LFWarning, build_inputs, effective_area, fit_counts, run_lf
+from comest_bayes.bayes.spec import load_spec
+from comest_bayes.bayes.posterior import CompletenessPosterior
+from comest_bayes.recover.transfer import PhotometricTransfer, measure_transfer
 
 LN10 = math.log(10.0)
 
@@ -142,7 +142,7 @@ def test_joint_model_uses_the_completeness_models_own_link_at_its_free_parameter
     # The joint mode samples the completeness posterior's free parameters; the link needs the full layout
     # (pinned slots such as w_depth, beta_size).  Fed the free vector, JAX clamped the out-of-range slots to the
     # last free value (here w_depth = beta_depth = 1): the completeness, and the counts, were wrong.
-    from comest_bayes.lf import completeness_arrays
+    from comest_bayes.lf.fit import completeness_arrays
 
     rng = np.random.default_rng(41)
     post = _depth_posterior()
@@ -295,7 +295,7 @@ def test_run_lf_writes_results_figures_and_summary_entry(fake_run):
     # the counts figure's legend lies under both panels, over none of their points
     from matplotlib.backends.backend_agg import FigureCanvasAgg
 
-    from comest_bayes.plots.lf import counts_figure
+    from comest_bayes.report.plots.lf import counts_figure
 
     fig = counts_figure(res)
     canvas = FigureCanvasAgg(fig)
@@ -308,7 +308,7 @@ def test_run_lf_writes_results_figures_and_summary_entry(fake_run):
     np.testing.assert_array_equal(back.samples, res.samples)
     np.testing.assert_array_equal(back.transfer.density, res.transfer.density)
     assert back.parameter_summary() == res.parameter_summary()
-    from comest_bayes.report import lf_figures
+    from comest_bayes.report.html import lf_figures
 
     figs = lf_figures(fake_run / "lf")
     assert [t.split(":")[0] for t, _ in figs] == ["Number counts point_powerlaw_fixed"] * 2
@@ -387,7 +387,7 @@ def test_readme_lf_example_runs_without_the_faint_limit_warning(fake_run, capsys
 
 
 def test_demo_star_counts_follow_the_requested_power_law():
-    from comest_bayes.demo import demo_truth_catalog
+    from comest_bayes.sim.demo import demo_truth_catalog
 
     t = demo_truth_catalog(seed=5, size=3000, galaxy_density=0.0, n_saturated_stars=0,
                            star_counts=(2.0e4, 0.3, 23.0))
@@ -408,8 +408,8 @@ def test_demo_star_counts_follow_the_requested_power_law():
 def test_rendered_mock_recovers_the_power_law(tmp_path):
     """Point sources drawn from a known power law, rendered, detected; completeness by injection; counts fitted."""
     from comest_bayes.config import load_config
-    from comest_bayes.demo import MASK_GAP, make_demo_tile, write_demo_tile
-    from comest_bayes.pipeline import ComputeOptions, ImageOptions, run_pipeline
+    from comest_bayes.sim.demo import MASK_GAP, make_demo_tile, write_demo_tile
+    from comest_bayes.pipeline.stages import ComputeOptions, ImageOptions, run_pipeline
 
     tile = make_demo_tile(seed=11, size=1000, galaxy_density=0.0, n_saturated_stars=0,
                           star_counts=(2.0e4, 0.3, 23.0))

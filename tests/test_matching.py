@@ -1,4 +1,4 @@
-"""Tests of comest_bayes.matching: one-to-one matching and detection classes."""
+"""Tests of comest_bayes.recover.matching: one-to-one matching and detection classes."""
 
 import time
 
@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from comest_bayes.errors import InputError
-from comest_bayes.matching import classify_detections, match_one_to_one
+from comest_bayes.recover.matching import classify_detections, match_one_to_one
 
 
 def _reference_greedy(tx, ty, tm, dx, dy, dm, radius, mag_tol):

@@ -7,8 +7,7 @@ import math
 import pytest
 
 from comest_bayes.errors import ConfigError
-from comest_bayes.modelspec import (DEFAULT_PRIORS, ModelSpec, list_specs, load_spec, resolve_candidates,
-                                    spec_from_mapping, with_priors)
+from comest_bayes.bayes.spec import (DEFAULT_PRIORS, ModelSpec, list_specs, load_spec, resolve_candidates, spec_from_mapping, with_priors)
 
 SHIPPED = ["auto", "auto_smooth", "logistic", "logistic_depth", "logistic_depth_size", "logistic_depth_smooth",
            "logistic_smooth", "pritchet", "probit", "probit_depth", "purity", "richards_depth", "spline_depth",
@@ -16,7 +15,7 @@ SHIPPED = ["auto", "auto_smooth", "logistic", "logistic_depth", "logistic_depth_
 
 
 def test_list_specs_finds_every_shipped_file():
-    from comest_bayes.modelspec import _models_dir
+    from comest_bayes.bayes.spec import _models_dir
 
     assert list_specs() == sorted(SHIPPED)
     files = {p.name for p in _models_dir().iterdir()}
@@ -40,7 +39,7 @@ def test_the_wheel_maps_models_into_the_package():
 
 def test_the_wheel_lists_every_subpackage_of_the_library():
     """A subpackage missing from [tool.setuptools] packages is left out of a wheel install (the report's
-    ``comest_bayes.plots`` once was), while tests run from the checkout still import it."""
+    ``comest_bayes.report.plots`` once was), while tests run from the checkout still import it."""
     import sys
     from pathlib import Path
 

@@ -7,7 +7,7 @@ import pytest
 from astropy.io import fits
 from astropy.table import Table
 
-from comest_bayes import pipeline
+from comest_bayes.pipeline import stages as pipeline
 from comest_bayes.cli import main
 
 

@@ -8,8 +8,8 @@ from astropy.io import fits
 
 from comest_bayes.cli import main
 from comest_bayes.config import load_config as _load_config
-from comest_bayes.demo import MASK_GAP, make_demo_tile, write_demo_tile
-from comest_bayes.pipeline import ImageOptions, run_pipeline
+from comest_bayes.sim.demo import MASK_GAP, make_demo_tile, write_demo_tile
+from comest_bayes.pipeline.stages import ImageOptions, run_pipeline
 
 
 @pytest.fixture(scope="module")
@@ -81,7 +81,7 @@ def test_rerun_resumes_without_redoing_stages(small_tile, tmp_path):
 
 def _crash_writing_sfi(monkeypatch):
     """The run dies as it writes sfi.fits (the source-free image is built and judged before anything is written)."""
-    from comest_bayes.rundir import RunDirectory
+    from comest_bayes.io.rundir import RunDirectory
 
     write_image = RunDirectory.write_image
 

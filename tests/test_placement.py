@@ -9,8 +9,7 @@ from scipy import stats
 from scipy.spatial import cKDTree
 
 from comest_bayes.errors import InputError
-from comest_bayes.placement import (draw_count, masked_at, pixel_index, place_sources,
-                                    placement_area_arcmin2)
+from comest_bayes.inject.placement import draw_count, masked_at, pixel_index, place_sources, placement_area_arcmin2
 
 METHODS = ("uniform", "grid", "halton")
 
@@ -136,11 +135,11 @@ def test_zero_and_invalid_inputs():
 
 
 # --------------------------------------------------------------------------- the automatic density
-# comest_bayes.preflight.choose_density: known image sizes give known counts per realization.
+# comest_bayes.pipeline.preflight.choose_density: known image sizes give known counts per realization.
 
 def _choice(kind, shape, pixel_scale, fwhm_pix, back_size=64, **injection):
     from comest_bayes.config import InjectionConfig
-    from comest_bayes.preflight import choose_density
+    from comest_bayes.pipeline.preflight import choose_density
 
     return choose_density(kind, shape=shape, pixel_scale=pixel_scale, fwhm_pix=fwhm_pix,
                           injection=InjectionConfig(**injection), back_size=back_size)
@@ -208,7 +207,7 @@ def test_a_density_the_user_sets_is_kept():
 def test_an_unresolved_automatic_density_draws_at_the_published_density():
     # a bare make_truth call with the default (automatic) density draws Poisson(15 x area)
     from comest_bayes.config import InjectionConfig
-    from comest_bayes.injection import make_truth
+    from comest_bayes.inject.render import make_truth
 
     config = InjectionConfig(kinds=("point",), mag_range=(20.0, 24.0))
     assert config.density == 0.0

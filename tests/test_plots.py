@@ -5,15 +5,15 @@ import pytest
 from matplotlib.axes import Axes
 from matplotlib.figure import Figure
 
-from comest_bayes.modelspec import load_spec
-from comest_bayes.plots import figure_png, new_axes, save_figure
-from comest_bayes.plots.completeness import magnitude_comparison, ratio_curve, ratios_figure
-from comest_bayes.plots.data import BinnedCurve, Cutout, DepthLine, MapPlane, PosteriorBand
-from comest_bayes.plots.diagnostics import autocorrelation_plot, sampler_figure, selection_plot, trace_plot
-from comest_bayes.plots.images import Markers, choose_region, cut, figure3, image_norm, mark, show_cutout
-from comest_bayes.plots.maps import m50_map_figure, ratio_map, ratio_maps_figure
-from comest_bayes.plots.rundata import chain_samples
-from comest_bayes.posterior import CompletenessPosterior
+from comest_bayes.bayes.spec import load_spec
+from comest_bayes.report.plots import figure_png, new_axes, save_figure
+from comest_bayes.report.plots.completeness import magnitude_comparison, ratio_curve, ratios_figure
+from comest_bayes.report.plots.data import BinnedCurve, Cutout, DepthLine, MapPlane, PosteriorBand
+from comest_bayes.report.plots.diagnostics import autocorrelation_plot, sampler_figure, selection_plot, trace_plot
+from comest_bayes.report.plots.images import Markers, choose_region, cut, figure3, image_norm, mark, show_cutout
+from comest_bayes.report.plots.maps import m50_map_figure, ratio_map, ratio_maps_figure
+from comest_bayes.report.rundata import chain_samples
+from comest_bayes.bayes.posterior import CompletenessPosterior
 
 
 # ----------------------------------------------------------------------------- images
@@ -239,7 +239,7 @@ def test_legends_cover_no_plotted_point():
 
 
 def test_band_width_panel_and_caption_give_the_posterior_widths():
-    from comest_bayes.plots.completeness import band_caption, band_width
+    from comest_bayes.report.plots.completeness import band_caption, band_width
 
     mag = np.linspace(20.0, 24.0, 81)
     med = 1.0 / (1.0 + np.exp((mag - 22.3) / 0.3))

@@ -6,9 +6,9 @@ import time
 import numpy as np
 from tqdm.auto import tqdm
 
-import comest_bayes.progress as P
+import comest_bayes.pipeline.progress as P
 from comest_bayes.cli import _write_line, main
-from comest_bayes.demo import make_demo_tile
+from comest_bayes.sim.demo import make_demo_tile
 
 
 def _last_line_drawn(text: str, line: str) -> str:
@@ -100,7 +100,7 @@ def test_quiet_demo_prints_nothing(tmp_path, capsys):
 def test_a_realizations_warnings_come_back_to_the_main_process_once_each(monkeypatch):
     import warnings
 
-    import comest_bayes.recovery as recovery
+    import comest_bayes.recover.realization as recovery
 
     def noisy(task):
         for n in (49, 49, 52):

@@ -1,4 +1,4 @@
-"""Tests of comest_bayes.psf: seeing FWHM from the stars of an image.
+"""Tests of comest_bayes.detect.psf: seeing FWHM from the stars of an image.
 
 The synthetic images are drawn with GalSim (pixel scale 1, so sizes are in
 pixels): stars of a known PSF on a jittered grid, extended exponential
@@ -14,11 +14,10 @@ import galsim
 import numpy as np
 import pytest
 
-from comest_bayes.catalog import FLAG_SATURATED
-from comest_bayes.detection import detect_array
+from comest_bayes.detect.catalog import FLAG_SATURATED
+from comest_bayes.detect.sep_backend import detect_array
 from comest_bayes.errors import InputError
-from comest_bayes.psf import (BETA_RANGE, FwhmEstimate, estimate_fwhm, fit_moffat, injection_psf, measure_seeing,
-                              moffat_image, point_size_check, seeing_from_header, select_stars)
+from comest_bayes.detect.psf import (BETA_RANGE, FwhmEstimate, estimate_fwhm, fit_moffat, injection_psf, measure_seeing, moffat_image, point_size_check, seeing_from_header, select_stars)
 
 SKY = 100.0
 SIGMA = 1.0
@@ -366,8 +365,8 @@ def test_real_headers_decam_fwhm_is_used_and_a_contradicted_one_is_refused(share
     from astropy.io import fits
 
     from comest_bayes.config import DetectionConfig
-    from comest_bayes.detection import detect
-    from comest_bayes.image import load_image
+    from comest_bayes.detect.sep_backend import detect
+    from comest_bayes.io.image import load_image
 
     def seeing(path, **kw):
         with warnings.catch_warnings():

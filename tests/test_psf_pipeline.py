@@ -1,7 +1,7 @@
 """The injected PSF through the pipeline (issue 13): it is the PSF the image has, and says so.
 
 * On a synthetic image whose stars are Moffat profiles of beta 2.5 (drawn with
-  :func:`comest_bayes.psf.moffat_image`, integrated over the pixels), a run
+  :func:`comest_bayes.detect.psf.moffat_image`, integrated over the pixels), a run
   fits the seeing, injects the fitted Moffat (its beta, integrated over the
   pixel), and its own diagnostic finds the injected point sources as large as
   the stars; with beta forced to 3 the same diagnostic finds them too small.
@@ -19,8 +19,8 @@ import pytest
 
 from comest_bayes.config import load_config
 from comest_bayes.errors import InputError
-from comest_bayes.pipeline import ComputeOptions, ImageOptions, run_pipeline
-from comest_bayes.psf import moffat_image
+from comest_bayes.pipeline.stages import ComputeOptions, ImageOptions, run_pipeline
+from comest_bayes.detect.psf import moffat_image
 from conftest import jittered_grid, tan_header, write_fits_file
 
 SERIAL = ComputeOptions(executor="serial")
@@ -77,7 +77,7 @@ def test_injected_point_sources_are_as_large_as_the_stars(beta25_image, tmp_path
     assert any(s.startswith("psf check: point:") and "agree within 5%" in s for s in lines), lines
 
     # the report shows where the PSF came from and the size check
-    from comest_bayes.report import write_report
+    from comest_bayes.report.html import write_report
 
     html = write_report(tmp_path / "run").read_text()
     assert "injected PSF" in html and "fitted from" in html and "point-source size check" in html

@@ -5,7 +5,7 @@ import warnings
 import numpy as np
 import pytest
 
-from comest_bayes.psis import gpd_fit, psis_log_weights
+from comest_bayes.bayes.psis import gpd_fit, psis_log_weights
 
 
 @pytest.mark.parametrize("size, scale", [(1000, 0.05), (2000, 0.3), (2000, 1.0), (4000, 2.0), (8000, 1.5)])

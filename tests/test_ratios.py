@@ -1,4 +1,4 @@
-"""Tests of comest_bayes.ratios: binned completeness, purity, detection rate, maps and map WCS."""
+"""Tests of comest_bayes.ratios.binned: binned completeness, purity, detection rate, maps and map WCS."""
 
 import json
 import warnings
@@ -11,21 +11,7 @@ from scipy.special import ndtri
 from scipy.stats import binom
 
 from comest_bayes.errors import InputError
-from comest_bayes.ratios import (
-    binned_ratio,
-    completeness,
-    completeness_map,
-    default_map_mag_edges,
-    transition_map_mag_edges,
-    detection_rate,
-    magnitude_at,
-    magnitude_edges,
-    map_bin_pixels,
-    map_wcs,
-    purity,
-    purity_map,
-    ratio_maps,
-)
+from comest_bayes.ratios.binned import (binned_ratio, completeness, completeness_map, default_map_mag_edges, transition_map_mag_edges, detection_rate, magnitude_at, magnitude_edges, map_bin_pixels, map_wcs, purity, purity_map, ratio_maps)
 
 
 def _wilson(k, n, confidence):

@@ -27,7 +27,7 @@ What each uncrowded image must show:
 * point sources brighter than the run's 5-sigma point-source depth minus 1.5 mag (SNR >~ 20 with
   optimal photometry) are detected at least 95% of the time;
 * the binned m50 sits where the image's measured noise and the detection settings predict:
-  :func:`comest_bayes.analytic.predict` (Monte Carlo: the run's median detection sigma, the
+  :func:`comest_bayes.sim.analytic.predict` (Monte Carlo: the run's median detection sigma, the
   default 3x3 kernel, thresh 1.5, minarea 5, the injected Moffat with the run's FWHM and beta, and
   the pixel noise's autocorrelation measured on the image injected on, lags <= 2 px: the reach of
   the 3x3 filter and of a 5-pixel group).  Tolerance 0.2 mag for the binned m50, which takes the
@@ -82,10 +82,10 @@ from astropy.table import Table
 from scipy.optimize import minimize
 from scipy.special import ndtr
 
-from comest_bayes.analytic import noise_autocorrelation, predict
+from comest_bayes.sim.analytic import noise_autocorrelation, predict
 from comest_bayes.cli import main
 from comest_bayes.config import DetectionConfig
-from comest_bayes.detection import filter_kernel
+from comest_bayes.detect.sep_backend import filter_kernel
 
 pytestmark = pytest.mark.realdata
 
@@ -317,7 +317,7 @@ def test_report_shows_each_decision_and_where_it_came_from(shared_data, tmp_path
 
     from astropy.wcs import FITSFixedWarning
 
-    from comest_bayes.report import write_report
+    from comest_bayes.report.html import write_report
 
     case = next(c for c in CASES if c.name == "jwst_f200w")
     case = Case(**{**case.__dict__, "nsims": 2})
@@ -344,12 +344,12 @@ def test_report_shows_each_decision_and_where_it_came_from(shared_data, tmp_path
 def test_kids_empirical_psf_from_its_stars_looks_like_its_stars(shared_data, tmp_path):
     # The fitted Moffat (FWHM 2.26 px, beta 2.1) lacks the stars' outer wings: at the same SNR its
     # injections measure 0.978 +- 0.006 of the stars' flux_radius.  Stacked from the image's own
-    # stars (comest_bayes.psf.empirical_psf) and given as injection.psf, the injections measure
+    # stars (comest_bayes.detect.psf.empirical_psf) and given as injection.psf, the injections measure
     # 1.004 +- 0.008, and point-source m50 moves 0.07 mag brighter (binned 24.63 -> 24.57, probit
     # 24.62 -> 24.55): the Moffat's brighter core had made the image look deeper than it is.
-    from comest_bayes.detection import detect
-    from comest_bayes.image import load_image
-    from comest_bayes.psf import empirical_psf, measure_seeing
+    from comest_bayes.detect.sep_backend import detect
+    from comest_bayes.io.image import load_image
+    from comest_bayes.detect.psf import empirical_psf, measure_seeing
 
     path = shared_data / "kids" / "kidsviking_waves_2600px_r.fits"
     image = load_image(path, pixel_scale=0.2, zp=0.0)

@@ -16,9 +16,9 @@ from astropy.io import fits
 from astropy.wcs import WCS, FITSFixedWarning
 
 from comest_bayes.config import DetectionConfig
-from comest_bayes.detection import detect, detect_array
+from comest_bayes.detect.sep_backend import detect, detect_array
 from comest_bayes.errors import DetectionOverflowError, InputError
-from comest_bayes.image import load_image
+from comest_bayes.io.image import load_image
 
 pytestmark = pytest.mark.realdata
 

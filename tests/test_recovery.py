@@ -32,15 +32,15 @@ from astropy.io import fits
 from astropy.table import Table
 from astropy.wcs import WCS
 
-from comest_bayes import recovery
+from comest_bayes.recover import realization as recovery
 from comest_bayes.config import load_config
 
 # These tests are about injection and recovery; the Bayesian fit has its own tests.
 NOFIT = ["fit.model=none", "fit.purity_model=none"]
-from comest_bayes.demo import MASK_GAP, make_demo_tile, write_demo_tile
-from comest_bayes.pipeline import ComputeOptions, ImageOptions, run_pipeline
-from comest_bayes.ratios import magnitude_edges
-from comest_bayes.recovery import OUTCOME_COLUMNS, merge_realizations, realization_file
+from comest_bayes.sim.demo import MASK_GAP, make_demo_tile, write_demo_tile
+from comest_bayes.pipeline.stages import ComputeOptions, ImageOptions, run_pipeline
+from comest_bayes.ratios.binned import magnitude_edges
+from comest_bayes.recover.realization import OUTCOME_COLUMNS, merge_realizations, realization_file
 from conftest import make_synthetic_sky, matched_snr, render_point_sources, tan_header, write_fits_file
 
 # ---------------------------------------------------------------- the clean image
@@ -546,7 +546,7 @@ def test_a_new_run_in_a_recreated_directory_reads_its_own_images(tmp_path):
 def _small_context(tmp_path, *, noise_mode="background", nan_at=None, mask_block=True):
     """A SimContext on a 256^2 flat-noise base image written as the pipeline writes its inputs."""
     from comest_bayes.config import DetectionConfig, InjectionConfig, MatchingConfig
-    from comest_bayes.detection import detect_array
+    from comest_bayes.detect.sep_backend import detect_array
 
     shape = (256, 256)
     rng = np.random.default_rng(31)
@@ -581,8 +581,8 @@ def test_a_realization_detects_exactly_as_the_default_detection_path(tmp_path, n
     # run_realization re-detects on its private rendered copy with the fast path (no segmentation map,
     # background subtracted in place, no per-realization finiteness check); redoing the realization by
     # hand with the default detect_array must give the same detections.
-    from comest_bayes.detection import detect_array
-    from comest_bayes.injection import make_truth, render_truth
+    from comest_bayes.detect.sep_backend import detect_array
+    from comest_bayes.inject.render import make_truth, render_truth
     from comest_bayes.seeding import int_seed_for, rng_for
 
     ctx, base, mask, sigma = _small_context(tmp_path, noise_mode=noise_mode)
@@ -623,8 +623,8 @@ def test_matching_an_empty_truth_table_makes_every_detection_false(tmp_path):
     # A small field at a low density can draw zero injections; the detections of such a realization
     # (here: noise peaks and sources of an image) must all come out unmatched and false, not crash.
     from comest_bayes.config import InjectionConfig
-    from comest_bayes.detection import detect_array
-    from comest_bayes.injection import make_truth
+    from comest_bayes.detect.sep_backend import detect_array
+    from comest_bayes.inject.render import make_truth
     from comest_bayes.seeding import rng_for
 
     ctx, base, mask, sigma = _small_context(tmp_path)

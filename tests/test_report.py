@@ -14,12 +14,12 @@ from astropy.io import fits
 
 from comest_bayes.cli import main
 from comest_bayes.config import load_config
-from comest_bayes.demo import MASK_GAP, make_demo_tile, write_demo_tile
+from comest_bayes.sim.demo import MASK_GAP, make_demo_tile, write_demo_tile
 from comest_bayes.errors import RunDirectoryError
-from comest_bayes.pipeline import ImageOptions, run_pipeline
-from comest_bayes.plots import new_axes
-from comest_bayes.plots import rundata as RD
-from comest_bayes.report import write_report
+from comest_bayes.pipeline.stages import ImageOptions, run_pipeline
+from comest_bayes.report.plots import new_axes
+from comest_bayes.report import rundata as RD
+from comest_bayes.report.html import write_report
 
 FIGURE_RE = re.compile(r'<figure id="fig-([^"]+)"><img alt="[^"]*" src="data:image/png;base64,([A-Za-z0-9+/=]+)">')
 
@@ -50,7 +50,7 @@ def report_run(tile, tmp_path_factory):
 @pytest.fixture(scope="module")
 def report_figures(report_run):
     """The report's matplotlib figures by name (the report is written again, keeping them)."""
-    from comest_bayes import report as R
+    from comest_bayes.report import html as R
 
     figures = {}
     original = R._Report.figure
@@ -276,7 +276,7 @@ def test_lf_section_calls_the_lf_figures_when_present(partial_run, monkeypatch):
         ax.plot([20, 21, 22], [1, 10, 100])
         return [("r band: counts", ax.figure), ("r band: counts", ax.figure)]
 
-    import comest_bayes.report as report_module
+    import comest_bayes.report.html as report_module
 
     monkeypatch.setattr(report_module, "lf_figures", lf_figures)
     target = out / "lf_report.html"

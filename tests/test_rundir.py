@@ -9,7 +9,7 @@ import pytest
 from astropy.table import Table
 
 from comest_bayes.errors import OutputWriteError, RunDirectoryError
-from comest_bayes.rundir import RunDirectory, atomic_path, check_writable, file_checksum
+from comest_bayes.io.rundir import RunDirectory, atomic_path, check_writable, file_checksum
 from comest_bayes.seeding import int_seed_for, rng_for, seed_sequence
 
 
@@ -121,7 +121,7 @@ def _hold_lock_in_another_process(path):
     import subprocess
     import sys
 
-    code = ("import sys, time\nfrom comest_bayes.rundir import RunDirectory\n"
+    code = ("import sys, time\nfrom comest_bayes.io.rundir import RunDirectory\n"
             f"RunDirectory({str(path)!r}, {{'x': 1}}).open()\nprint('ready', flush=True)\ntime.sleep(120)\n")
     proc = subprocess.Popen([sys.executable, "-c", code], stdout=subprocess.PIPE, text=True)
     assert proc.stdout.readline().strip() == "ready"

@@ -8,7 +8,7 @@ exponential-disk galaxies, all at known, well separated positions.
 SEP is a library port of SExtractor's own extraction code, so with the same
 configuration the two backends should find the same objects and measure the
 same photometry; the differences that remain (documented in
-``comest_bayes.sextractor``) concern blends (SExtractor masks neighbours in
+``comest_bayes.detect.sextractor``) concern blends (SExtractor masks neighbours in
 the Kron ellipse) and pixels next to masks.  The tolerances below are set
 from that and from measurements (see each test).
 
@@ -31,9 +31,9 @@ from scipy.ndimage import distance_transform_edt
 from scipy.spatial import cKDTree
 from scipy.special import erf
 
-from comest_bayes import sextractor as sx
+from comest_bayes.detect import sextractor as sx
 from comest_bayes.config import DetectionConfig
-from comest_bayes.detection import detect, detect_array, filter_kernel
+from comest_bayes.detect.sep_backend import detect, detect_array, filter_kernel
 from comest_bayes.errors import BackendUnavailableError, ComestError, ConfigError
 
 ZEROPOINT = 30.0

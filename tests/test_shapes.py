@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 from scipy.special import expit
 
-from comest_bayes.shapes import SPLINE_H, SPLINE_T0, monotone_spline, richards_logs, spline_knots
+from comest_bayes.bayes.shapes import SPLINE_H, SPLINE_T0, monotone_spline, richards_logs, spline_knots
 
 jax.config.update("jax_enable_x64", True)
 

@@ -1,4 +1,4 @@
-"""The size check of injected point sources against the image's stars (comest_bayes.psf.point_size_check).
+"""The size check of injected point sources against the image's stars (comest_bayes.detect.psf.point_size_check).
 
 SEP's flux_radius grows with the signal-to-noise (measured on the shared KiDS r image: 1.64 px at
 SNR 20-40, 1.73 at 80-160, 1.83 above 1280, for stars; the injections follow the same law within
@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 
 from comest_bayes.errors import InputError
-from comest_bayes.psf import point_size_check
+from comest_bayes.detect.psf import point_size_check
 
 
 def _radii(snr, rng, scale=1.0, scatter=0.01):
@@ -77,8 +77,8 @@ def _halo_psf():
 def test_empirical_psf_recovers_a_psf_with_a_halo():
     import galsim
 
-    from comest_bayes.detection import detect_array
-    from comest_bayes.psf import empirical_psf
+    from comest_bayes.detect.sep_backend import detect_array
+    from comest_bayes.detect.psf import empirical_psf
 
     rng = np.random.default_rng(7)
     shape, h = (600, 600), 12

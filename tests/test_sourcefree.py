@@ -26,7 +26,7 @@ from scipy import ndimage
 from conftest import render_point_sources
 
 from comest_bayes.config import SourceFreeConfig
-from comest_bayes.detection import detect_array
+from comest_bayes.detect.sep_backend import detect_array
 from comest_bayes.errors import InputError
 from comest_bayes.sourcefree import build_source_free, dilated_footprint, judge_replacement, removal_radii
 

@@ -15,8 +15,8 @@ from astropy.table import Table
 
 from comest_bayes.config import load_config
 from comest_bayes.errors import InputError
-from comest_bayes.fitting import fit_kind
-from comest_bayes.inference import IdentifiabilityWarning
+from comest_bayes.bayes.fit import fit_kind
+from comest_bayes.bayes.inference import IdentifiabilityWarning
 
 pytestmark = pytest.mark.slow
 

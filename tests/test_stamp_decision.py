@@ -6,8 +6,8 @@ import galsim
 import pytest
 
 from comest_bayes.config import InjectionConfig
-from comest_bayes.injection import MAX_PSF_RADIUS_PIX, point_stamp_size
-from comest_bayes.psf import injection_psf
+from comest_bayes.inject.render import MAX_PSF_RADIUS_PIX, point_stamp_size
+from comest_bayes.detect.psf import injection_psf
 
 
 def _moffat_radius(fwhm, beta, fraction=0.995):

@@ -1,11 +1,11 @@
-"""Tests of comest_bayes.synthetic: scenes, known completeness truths, outcome tables, binned estimate."""
+"""Tests of comest_bayes.sim.synthetic: scenes, known completeness truths, outcome tables, binned estimate."""
 
 import math
 
 import numpy as np
 import pytest
 
-from comest_bayes import synthetic as S
+from comest_bayes.sim import synthetic as S
 from comest_bayes.errors import InputError
 
 
@@ -164,7 +164,7 @@ def test_draw_outcomes_columns_and_positions(small_scene):
     assert not small_scene.mask[iy, ix].any()
     np.testing.assert_array_equal(t["noise"], small_scene.noise[iy, ix])
     # the package reads the table as it is
-    from comest_bayes.likelihood import covariates_from_outcomes
+    from comest_bayes.bayes.likelihood import covariates_from_outcomes
 
     cov, det, meta = covariates_from_outcomes(t, image_shape=small_scene.shape)
     assert meta["N"] == 5000 and set(meta["available"]) >= {"m", "uv", "depth"}

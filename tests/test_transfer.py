@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 
 from comest_bayes.errors import InputError
-from comest_bayes.transfer import PhotometricTransfer, measure_transfer, transfer_from_outcomes
+from comest_bayes.recover.transfer import PhotometricTransfer, measure_transfer, transfer_from_outcomes
 
 
 def _sample(n, rng, bias=0.05, sigma=lambda m: 0.05 + 0.05 * (m - 20.0), lo=20.0, hi=25.0):

@@ -1,0 +1,514 @@
+"""Fit the completeness and purity models of one source kind (orchestration of the numerics).
+
+From the per-injection outcome table (and the matched and false detections
+for purity) to a saved :class:`~comest_bayes.bayes.posterior.CompletenessPosterior`
+and the JSON-ready entry that ``summary.json`` gains under
+``kinds.<kind>.model`` and ``kinds.<kind>.purity_model``::
+
+    {
+      "name": "logistic_depth",                   # the fitted (or selected) specification
+      "requested": "auto",
+      "selection": {"table": [...], "chosen", "best", "rule"} | null,
+      "m50": {"median", "lo68", "hi68", "defined_fraction"}, "m80": {...}, "m90": {...},
+      "parameters": {"m50_0": {"median", "lo68", "hi68"}, "w": ..., "A": ..., ...},
+      "curve": {"mag": [...], "median": [...], "lo68", "hi68", "lo95", "hi95"},   # image average
+      "diagnostics": {tau, ess, acceptance, nsteps, converged, warnings, ...},
+      "shape_check": {chi2, dof, p_value, max_abs_z, mag_at_max, bins: [...]},   # comest_bayes.bayes.checks
+      "posterior_file": "posterior/<kind>.npz",
+      "m50_map_file": "maps/<kind>_m50.fits" | null,
+      "n_outcomes": N, "n_cells": G, "seconds": t
+    }
+
+For purity the magnitudes are the measured ones and the "characteristic
+magnitudes" are where purity falls to 50/80/90%.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+import warnings
+
+import numpy as np
+from astropy.table import Table
+
+from comest_bayes.ratios import binned as R
+from comest_bayes.bayes.checks import shape_check, shape_warning
+from comest_bayes.config import RunConfig
+from comest_bayes.errors import InputError
+from comest_bayes.bayes.inference import fit, fit_map
+from comest_bayes.io.jsonio import dumps
+from comest_bayes.bayes.likelihood import (CompletenessModel, compress_for, covariate_warnings, covariates_from_outcomes)
+from comest_bayes.bayes.spec import load_spec, resolve_candidates
+from comest_bayes.bayes.posterior import (CompletenessPosterior, Footprint, FootprintHistogram, average_crossings, average_prob, coarse_noise_map, footprint_sample)
+from comest_bayes.seeding import int_seed_for, rng_for
+from comest_bayes.bayes.selection import choose_tau, select_model
+
+__all__ = ["fit_kind", "fit_task", "purity_outcomes", "warm_state", "MIN_OUTCOMES"]
+
+#: Fewer usable outcomes than this: the fit still runs but warns that the prior dominates.
+MIN_OUTCOMES = 20
+#: Offset of the probe magnitudes of the targeted quantities from the data's m50 (mag).
+PROBE_OFFSET = 0.3
+
+
+def purity_outcomes(matched: Table, false: Table, mag_column: str = "mag_auto") -> Table:
+    """One row per counted detection: measured position and magnitude, ``real`` (matched) or not."""
+    mm = np.asarray(matched[f"det_{mag_column}"], float)
+    fm = np.asarray(false[mag_column], float)
+    if mm.ndim == 2:
+        mm = mm[:, 0]
+    if fm.ndim == 2:
+        fm = fm[:, 0]
+    return Table({
+        "x": np.concatenate([np.asarray(matched["det_xwin"], float), np.asarray(false["xwin"], float)]),
+        "y": np.concatenate([np.asarray(matched["det_ywin"], float), np.asarray(false["ywin"], float)]),
+        "mag": np.concatenate([mm, fm]),
+        "real": np.concatenate([np.ones(len(mm), bool), np.zeros(len(fm), bool)]),
+    })
+
+
+def _param_summary(model: CompletenessModel, draws: np.ndarray) -> dict:
+    phys = model.transform(draws)
+    out = {}
+    for name, values in phys.items():
+        values = np.atleast_1d(np.asarray(values, float))
+        q = np.percentile(values, [16, 50, 84])
+        out[name] = {"median": float(q[1]), "lo68": float(q[0]), "hi68": float(q[2])}
+    return out
+
+
+def _json_curve(curve: dict) -> dict:
+    return {k: [float(v) for v in np.asarray(arr)] for k, arr in curve.items()}
+
+
+#: A purity model needs at least this many detections of each class (real and false); with fewer,
+#: the binned purity and its binomial interval say all there is to say.
+MIN_CLASS = 25
+
+
+def _probe_magnitudes(m: np.ndarray, detected: np.ndarray) -> tuple[float, float]:
+    """A rough m50 of the outcomes (0.1-mag bins, first fall below half) -+ PROBE_OFFSET."""
+    lo, hi = float(np.min(m)), float(np.max(m))
+    edges = np.arange(lo, hi + 0.1, 0.1)
+    if edges.size < 3:
+        mid = 0.5 * (lo + hi)
+    else:
+        n, _ = np.histogram(m, edges)
+        k, _ = np.histogram(m[detected], edges)
+        with np.errstate(invalid="ignore", divide="ignore"):
+            frac = np.where(n > 0, k / np.maximum(n, 1), np.nan)
+        top = np.nanmax(frac) if np.isfinite(frac).any() else 1.0
+        below = np.flatnonzero(frac < 0.5 * top)
+        mid = float(0.5 * (edges[below[0]] + edges[below[0] + 1])) if below.size else 0.5 * (lo + hi)
+    return mid - PROBE_OFFSET, mid + PROBE_OFFSET
+
+
+def targeted_quantities(cells: Footprint, probes, lo: float, hi: float):
+    """The quantities the selection's adequacy check compares: ``(model, draws) -> {name: (S,)}``.
+
+    The image-average m50 and m90 (exact over the footprint) and the
+    image-average f at the two probe magnitudes.
+    """
+    def fn(model, draws):
+        cross = average_crossings(model, draws, cells, (0.5, 0.9), lo, hi)
+        f = average_prob(model, draws, np.asarray(probes, float), cells)
+        return {"m50": cross[0.5], "m90": cross[0.9], "f_bright": f[:, 0], "f_faint": f[:, 1]}
+    return fn
+
+
+def fit_task(task: dict) -> tuple:
+    """Run :func:`fit_kind` from file paths (a picklable task for the executors).
+
+    ``task`` holds ``run_dir``, ``kind``, ``quantity``, ``requested``, ``config``, ``image_shape``,
+    ``wcs_header``, ``mag_range``, ``mag_centers`` and optionally ``shared_maps``
+    (:func:`shared_maps`: what every fit of the run takes from the noise map and mask, computed
+    once).  Returns ``(posterior or None, entry)``; the posterior is returned without its compiled
+    model.
+    """
+    from pathlib import Path
+
+    from astropy.io import fits
+
+    c0 = time.process_time()
+    run = Path(task["run_dir"])
+    kind, quantity, config = task["kind"], task["quantity"], task["config"]
+    if quantity == "completeness":
+        table = Table.read(run / "catalogs" / f"{kind}_outcomes.fits", mask_invalid=False)
+        outcome_column = "detected"
+    else:
+        table = purity_outcomes(Table.read(run / "catalogs" / f"{kind}_matched.fits", mask_invalid=False),
+                                Table.read(run / "catalogs" / f"{kind}_false.fits", mask_invalid=False),
+                                config.matching.mag_column)
+        outcome_column = "real"
+        nreal = int(np.sum(table["real"]))
+        nfalse = len(table) - nreal
+        if min(nreal, nfalse) < MIN_CLASS:
+            return None, {"name": None, "requested": task["requested"], "cpu_seconds": 0.0,
+                          "skipped": f"{nreal} real and {nfalse} false detections: a purity model needs at least "
+                                     f"{MIN_CLASS} of each; see the binned purity"}
+    shared = task.get("shared_maps") or {}
+    footprints, noise_grid = shared.get("footprints") or {}, shared.get("noise_grid")
+    # the noise map is only read when the run did not pass the footprint histogram this fit needs and the grid
+    have = footprint_grid(needs_smooth(task["requested"])) in footprints and noise_grid is not None
+    noise = None if have else fits.getdata(run / "noise.fits").astype(np.float32)
+    mask = fits.getdata(run / "mask.fits").astype(bool)
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        post, entry = fit_kind(table, kind=kind, quantity=quantity, requested=task["requested"], config=config,
+                               image_shape=task["image_shape"], noise=noise, mask=mask,
+                               wcs_header=task["wcs_header"], mag_range=task["mag_range"],
+                               mag_centers=task["mag_centers"], outcome_column=outcome_column,
+                               footprints=footprints, noise_grid=noise_grid)
+    entry["warnings"] = sorted(set(entry.get("warnings", [])) | {str(w.message) for w in caught})
+    entry["cpu_seconds"] = round(time.process_time() - c0, 3)
+    post._model = None
+    return post, entry
+
+
+def footprint_grid(smooth: bool) -> tuple[float, int]:
+    """``(ddepth, nuv)`` of the footprint cells of a fit: finer in depth without a smooth spatial term,
+    8 x 8 position blocks with one."""
+    return (0.02, 8) if smooth else (0.01, 1)
+
+
+def needs_smooth(requested: str) -> bool:
+    """Whether the model (or any candidate of the selection) ``requested`` has a smooth spatial term."""
+    spec = load_spec(requested)
+    return any(c.uses_smooth for c in (resolve_candidates(spec) if spec.is_selection else [spec]))
+
+
+def footprint_histograms(noise: np.ndarray | None, mask: np.ndarray, requested) -> dict:
+    """The footprint histograms the fits of ``requested`` models need, keyed by ``(ddepth, nuv)``.
+
+    One pass over the pixels per grid (about half a second on 3000 x 3000), shared by every kind
+    and quantity of a run instead of repeated by each fit.
+    """
+    grids = {footprint_grid(needs_smooth(r)) for r in requested}
+    return {g: FootprintHistogram.from_maps(noise, mask, ddepth=g[0], nuv=g[1]) for g in sorted(grids)}
+
+
+def shared_maps(noise: np.ndarray, mask: np.ndarray, requested) -> dict:
+    """What every fit of a run takes from its noise map and mask: footprint histograms and the noise grid.
+
+    Small arrays (a few thousand cells), cheap to send to the fit workers; computing them once
+    instead of in each fit saves about a second per fit on a 3000 x 3000 image.
+    """
+    return {"footprints": footprint_histograms(noise, mask, requested), "noise_grid": coarse_noise_map(noise, mask)}
+
+
+def warm_state(post: CompletenessPosterior) -> dict:
+    """What a warm refit of the same model needs: parameter names, the posterior median, the spline's tau."""
+    return {"model": post.spec.name, "names": list(post.names),
+            "theta": [float(v) for v in np.median(np.asarray(post.samples, float), axis=0)],
+            "tau": None if post.meta.get("tau") is None else float(post.meta["tau"])}
+
+
+def fit_kind(outcomes: Table, *, kind: str, quantity: str, requested: str, config: RunConfig, image_shape,
+             noise: np.ndarray, mask: np.ndarray, wcs_header: str | None, mag_range, mag_centers,
+             outcome_column: str = "detected", footprint_points=None, warm: dict | None = None,
+             footprints: dict | None = None, noise_grid: np.ndarray | None = None,
+             log=lambda s: None) -> tuple[CompletenessPosterior, dict]:
+    """Fit (or select and fit) the model of one kind and quantity.
+
+    Parameters
+    ----------
+    outcomes : Table
+        Rows with ``mag``, ``outcome_column`` and optionally ``x``, ``y``,
+        ``noise``, ``hlr_arcsec``.
+    kind, quantity : str
+        Source kind and ``"completeness"`` or ``"purity"`` (names the seed stream).
+    requested : str
+        Spec name or path, or a selection spec such as ``auto``.
+    noise, mask : ndarray
+        Detection noise map and mask of the image (depth covariate, footprint).
+    footprint_points : (x, y, noise) arrays, optional
+        Average over these positions instead of every unmasked pixel of the
+        maps (:meth:`Footprint.from_points`; e.g. the injections themselves
+        when no noise map is known).
+    warm : dict, optional
+        A refit of the same kind with more data (the adaptive design's next
+        batch): ``{"names": [...], "theta": [...], "tau": float | None}``
+        from the previous posterior (:func:`warm_state`).  ``requested``
+        must then name one model (no selection); the MAP starts from
+        ``theta`` with Newton steps and a spline keeps the previous ``tau``.
+    footprints : dict, optional
+        Footprint histograms of ``noise`` and ``mask`` already computed
+        (:func:`footprint_histograms`, keyed by ``(ddepth, nuv)``): the one
+        pass over the pixels that every fit of a run shares.  Computed here
+        when absent.
+    noise_grid : ndarray, optional
+        :func:`~comest_bayes.bayes.posterior.coarse_noise_map` of the maps, likewise.
+
+    Returns
+    -------
+    (CompletenessPosterior, dict)
+        The posterior (not yet saved) and its ``summary.json`` entry.
+    """
+    t0 = time.perf_counter()
+    spec = load_spec(requested)
+    n_rows = len(outcomes)
+    if n_rows == 0:
+        raise InputError(f"no {quantity} outcomes for kind {kind!r}: nothing to fit.")
+    cov, outcome, meta = covariates_from_outcomes(outcomes, image_shape=image_shape, outcome_column=outcome_column)
+    warn = []
+    if n_rows < MIN_OUTCOMES:
+        warn.append(f"only {n_rows} outcomes: the posterior of the {kind} {quantity} is dominated by the priors")
+    if outcome.all() or not outcome.any():
+        warn.append(f"every {kind} outcome is {'positive' if outcome.all() else 'negative'}: the "
+                    f"{quantity} curve is not constrained on one side (its posterior there is the prior)")
+    for w in warn:
+        warnings.warn(w, UserWarning, stacklevel=2)
+    data = compress_for(spec, cov, outcome, meta=meta)
+    seed = int_seed_for(config.seed, "fit", quantity, kind)
+    candidates = resolve_candidates(spec) if spec.is_selection else [spec]
+    smooth = any(c.uses_smooth for c in candidates)
+    # every unmasked pixel, grouped into weighted covariate cells: the exact image average
+    if footprint_points is not None:
+        grid = footprint_grid(smooth)
+        cells = Footprint.from_points(*footprint_points, data.meta.get("sigma_ref"), image_shape, ddepth=grid[0],
+                                      nuv=grid[1])
+    else:
+        grid = footprint_grid(smooth)
+        hist = (footprints or {}).get(grid)
+        if hist is None:
+            hist = FootprintHistogram.from_maps(noise, mask, ddepth=grid[0], nuv=grid[1])
+        cells = Footprint.from_histogram(hist, data.meta.get("sigma_ref"))
+    mag_lo, mag_hi = float(mag_range[0]), float(mag_range[1])
+    edges = R.magnitude_edges(mag_lo, mag_hi, config.ratios.mag_bin)
+    selection = None
+    if warm is not None and spec.is_selection:
+        raise InputError(f"a warm refit needs one model, not the selection {requested!r}.")
+    if spec.is_selection:
+        probes = _probe_magnitudes(cov.m, outcome)
+        quantities = targeted_quantities(cells, probes, mag_lo, mag_hi)
+        sel = select_model(data, candidates, seed=seed, quantities=quantities, mag_edges=edges)
+        chosen_spec = next(c for c in candidates if c.name == sel.chosen)
+        model = sel.models[sel.chosen]
+        mp = sel.fits[sel.chosen].map
+        selection = {k: v for k, v in sel.to_dict().items() if k != "diagnostics"}
+        chosen_loo = sel.loo[sel.chosen]
+        if chosen_loo.n_bad_k:
+            warn.append(f"leave-one-out of the chosen model {sel.chosen}: {chosen_loo.n_bad_k} of {chosen_loo.n} "
+                        f"injections have a leverage above {chosen_loo.khat_threshold} (max {chosen_loo.khat_max:.2f}); "
+                        "its leave-one-out score is approximate (the choice between models may be affected)")
+        log(f"fit: {kind} {quantity}: selected {sel.chosen} among {[c.name for c in candidates]}")
+    elif warm is not None:
+        chosen_spec = spec
+        model = CompletenessModel(spec, data)
+        if warm.get("tau") is not None and spec.link == "spline":
+            model.tau = float(warm["tau"])
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", UserWarning)
+            mp = fit_map(model, nstarts=1, seed=seed, method="newton",
+                         start=model.warm_start(warm["names"], np.asarray(warm["theta"], float)))
+    else:
+        chosen_spec = spec
+        model = CompletenessModel(spec, data)
+        mp = None
+        if spec.link == "spline" and spec.spline_tau == "evidence":
+            _, mp, _ = choose_tau(model, seed=seed)
+    result = fit(model, seed=seed, sampler=config.fit.sampler, min_ess=config.fit.min_ess,
+                 max_steps=config.fit.max_steps, mp=mp)
+    for w in covariate_warnings(chosen_spec, data):
+        warnings.warn(w, UserWarning, stacklevel=2)
+        warn.append(w)
+    draws = result.draws()
+    # the run's ratio bins, so the check speaks of the same bins as the binned table
+    check = shape_check(model, draws, edges)
+    msg = shape_warning(check, name=chosen_spec.name, kind=kind, quantity=quantity)
+    if msg:
+        warnings.warn(msg, UserWarning, stacklevel=2)
+        warn.append(msg)
+    diagnostics = result.posterior.diagnostics.to_dict() if result.posterior is not None else {}
+    injected = [float(np.min(cov.m)), float(np.max(cov.m))]
+    post = CompletenessPosterior(
+        spec=chosen_spec, samples=draws, names=list(model.names),
+        meta={"sigma_ref": data.meta.get("sigma_ref"), "hlr_ref": data.meta.get("hlr_ref"),
+              "image_shape": tuple(int(v) for v in image_shape), "mag_range": [mag_lo, mag_hi],
+              "injected_range": injected, "depth_range": [float(np.min(cov.depth)), float(np.max(cov.depth))],
+              "kind": kind, "quantity": quantity, "tau": model.tau},
+        noise_grid=coarse_noise_map(noise, mask) if noise_grid is None else noise_grid, footprint=footprint_sample(mask, 2000, rng_for(seed, "footprint")),
+        wcs_header=wcs_header, diagnostics={"sampler": diagnostics, "selection": selection, "warnings": warn},
+        cells=cells,
+    )
+    post._model = model  # the compiled model (same parameters as the spec's own layout): no second compile
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        mags = post.summary_magnitudes()
+    for w in caught:
+        warn.append(str(w.message))
+    if np.ptp(cov.m) < 2.0 * config.ratios.mag_bin:
+        text = (f"all {kind} injections lie within {np.ptp(cov.m):.2f} mag (less than two {config.ratios.mag_bin}-mag "
+                f"bins): the shape of the {quantity} curve (its width, m80, m90) is not constrained by the data but by "
+                "the model's form and priors; inject over a range that brackets the transition")
+        warnings.warn(text, UserWarning, stacklevel=2)
+        warn.append(text)
+    entry = {
+        "name": chosen_spec.name,
+        "requested": requested,
+        "selection": selection,
+        **mags,
+        "parameters": _param_summary(model, draws),
+        "curve": _json_curve(post.curve(np.asarray(mag_centers, float))),
+        "diagnostics": diagnostics,
+        "tau": model.tau,
+        "shape_check": check,
+        "warnings": warn + list(diagnostics.get("warnings", [])),
+        "n_outcomes": int(data.ntotal),
+        "n_cells": int(data.ncells),
+        "seconds": round(time.perf_counter() - t0, 2),
+    }
+    return post, entry
+
+
+# --------------------------------------------------------------------------- outcomes from elsewhere
+
+#: Default column names of an outcome table (this package's own ``catalogs/<kind>_outcomes.fits``).
+OUTCOME_COLUMNS = {"mag": "mag", "detected": "detected", "x": "x", "y": "y", "noise": "noise"}
+
+
+def _read_map(path, name: str) -> np.ndarray:
+    from astropy.io import fits
+
+    try:
+        with fits.open(path) as hdul:
+            for hdu in hdul:
+                if hdu.data is not None and getattr(hdu.data, "ndim", 0) == 2:
+                    return np.asarray(hdu.data)
+    except (OSError, ValueError, TypeError) as exc:
+        raise InputError(f"{name} {str(path)!r} cannot be read as FITS: {exc}") from None
+    raise InputError(f"{name} {str(path)!r} holds no 2-D image HDU.")
+
+
+def fit_outcome_file(path, out, *, kind: str = "injections", model: str = "auto", columns: dict | None = None,
+                     noise_map=None, mask=None, image_shape=None, seed: int = 0, mag_bin: float = 0.1,
+                     log=lambda s: None) -> dict:
+    """Fit the completeness model to an outcome table made by any injection pipeline.
+
+    Parameters
+    ----------
+    path : str or Path
+        FITS (or any format astropy's Table reads) with one row per
+        injection: true magnitude, detected (bool or 0/1) and optionally
+        pixel position and the local detection noise.
+    out : str or Path
+        Output folder: new or empty.  Receives ``posterior/<kind>_completeness.npz``,
+        ``summary.json`` (``kinds.<kind>.model`` and the binned completeness)
+        and ``figures/<kind>_completeness.png``.
+    kind : str
+        Label of the injected population.
+    model : str
+        A spec name or path, or ``auto`` (the selection).
+    columns : dict, optional
+        Column names for ``mag``, ``detected``, ``x``, ``y``, ``noise``
+        (defaults :data:`OUTCOME_COLUMNS`); ``x``, ``y`` and ``noise`` may be
+        absent from the table.
+    noise_map, mask : str or Path, optional
+        FITS maps of the detection noise and bad pixels (non-zero = bad) of
+        the image: the image average then runs over every unmasked pixel.
+        Without them it runs over the injections' own positions and noise
+        values (the footprint as the injections sampled it).
+    image_shape : (ny, nx), optional
+        Needed with positions but without a noise map or mask (default:
+        from the maps, else the largest position + 1).
+    seed : int
+        Root seed of the fit.
+
+    Returns
+    -------
+    dict
+        The summary written to ``summary.json``.
+    """
+    from pathlib import Path
+
+    from comest_bayes.config import FitConfig
+    from comest_bayes.io.rundir import atomic_path
+
+    path, out = Path(path), Path(out)
+    cols = dict(OUTCOME_COLUMNS, **(columns or {}))
+    # -- validate everything before writing anything
+    if not path.is_file():
+        raise InputError(f"outcome table {str(path)!r} does not exist.")
+    try:
+        raw = Table.read(path)
+    except Exception as exc:  # astropy raises many types for unreadable tables
+        raise InputError(f"outcome table {str(path)!r} cannot be read: {exc}") from None
+    missing = [cols[c] for c in ("mag", "detected") if cols[c] not in raw.colnames]
+    if missing:
+        raise InputError(f"outcome table {str(path)!r} has no column(s) {missing}; its columns are {raw.colnames}. "
+                         "Name yours with --mag-column / --detected-column.")
+    if len(raw) == 0:
+        raise InputError(f"outcome table {str(path)!r} has no rows.")
+    if out.exists() and (not out.is_dir() or any(out.iterdir())):
+        raise InputError(f"output folder {str(out)!r} exists and is not empty; give a new or empty folder "
+                         "(nothing is overwritten).")
+    load_spec(model)
+    table = Table({"mag": np.asarray(raw[cols["mag"]], float), "detected": np.asarray(raw[cols["detected"]])})
+    has_xy = cols["x"] in raw.colnames and cols["y"] in raw.colnames
+    if has_xy:
+        table["x"] = np.asarray(raw[cols["x"]], float)
+        table["y"] = np.asarray(raw[cols["y"]], float)
+    if cols["noise"] in raw.colnames:
+        table["noise"] = np.asarray(raw[cols["noise"]], float)
+    noise = None if noise_map is None else _read_map(noise_map, "noise map").astype(np.float32)
+    bad = None if mask is None else _read_map(mask, "mask") != 0
+    if noise is not None and bad is not None and noise.shape != bad.shape:
+        raise InputError(f"noise map {noise.shape} and mask {bad.shape} differ in shape.")
+    shape = None
+    for arr in (noise, bad):
+        if arr is not None:
+            shape = arr.shape
+    if image_shape is not None:
+        if shape is not None and tuple(image_shape) != tuple(shape):
+            raise InputError(f"--image-shape {tuple(image_shape)} differs from the maps' shape {shape}.")
+        shape = tuple(int(v) for v in image_shape)
+    if shape is None and has_xy:
+        shape = (int(np.nanmax(table["y"])) + 2, int(np.nanmax(table["x"])) + 2)
+    if shape is None:
+        shape = (2, 2)  # no positions: the image plays no role
+    config = RunConfig(seed=int(seed), fit=FitConfig(model=model))
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise InputError(f"output folder {str(out)!r} cannot be created: {exc}") from None
+
+    # -- fit
+    mags = np.asarray(table["mag"], float)
+    good = np.isfinite(mags)
+    lo = math.floor(np.min(mags[good]) / mag_bin) * mag_bin
+    hi = math.ceil(np.max(mags[good]) / mag_bin) * mag_bin
+    edges = R.magnitude_edges(lo, hi, mag_bin)
+    centers = 0.5 * (edges[:-1] + edges[1:])
+    if bad is None:
+        bad = np.zeros(shape, bool)
+    if noise is None and "noise" in table.colnames and has_xy:
+        footprint = "injections"  # the injections' own positions sample the footprint
+    else:
+        footprint = "maps" if noise is not None or mask is not None else "uniform"
+    where = {"maps": "every unmasked pixel of the maps", "injections": "the injections' positions and noise",
+             "uniform": "a uniform footprint"}[footprint]
+    log(f"fit: {len(table)} outcomes of {kind} from {path.name}; model {model}; image average over {where}")
+    points = (table["x"], table["y"], table["noise"]) if footprint == "injections" else None
+    post, entry = fit_kind(table, kind=kind, quantity="completeness", requested=model, config=config,
+                           image_shape=shape, noise=noise if noise is not None else np.ones(shape, np.float32),
+                           mask=bad, wcs_header=None, mag_range=(lo, hi), mag_centers=centers,
+                           footprint_points=points, log=log)
+    binned = R.completeness(mags, np.asarray(table["detected"]).astype(bool), edges)
+    (out / "posterior").mkdir(exist_ok=True)
+    post.save(out / "posterior" / f"{kind}_completeness.npz")
+    entry["posterior_file"] = f"posterior/{kind}_completeness.npz"
+    entry["footprint"] = footprint
+    summary = {"source": str(path), "kinds": {kind: {"completeness": binned.to_dict(), "model": entry}}}
+    from comest_bayes.report.plots import save_figure
+    from comest_bayes.report.plots.completeness import ratio_curve
+    from comest_bayes.report.plots.data import BinnedCurve, PosteriorBand
+
+    ax = ratio_curve(BinnedCurve(binned.centers, binned.ratio, binned.lower, binned.upper, binned.n),
+                     posterior=PosteriorBand.from_dict(entry["curve"], label=entry["name"]))
+    ax.set_title(f"{kind}: {len(table)} injections from {path.name}")
+    (out / "figures").mkdir(exist_ok=True)
+    save_figure(ax.figure, out / "figures" / f"{kind}_completeness")
+    with atomic_path(out / "summary.json") as tmp:
+        tmp.write_text(dumps(summary, indent=2, fallback=str) + "\n")
+    return summary

@@ -1,0 +1,129 @@
+"""Transition shapes of the flexible completeness rungs (pure JAX, float64, elementwise).
+
+Two pieces, combined by :mod:`comest_bayes.bayes.likelihood` as::
+
+    t = (m - m50(x)) / w(x)                         standardised magnitude (faint = positive)
+    s = S(t; eta)                                   monotone decreasing, S(0) = 0, S'(0) = -1
+    g = (1 + exp(-(s + c(nu))))^(-nu)               generalised logistic (Richards), g(S = 0) = 1/2
+    f = floor + (A - floor) g
+
+* :func:`monotone_spline` is ``S``: ``-S'(t)`` is a positive rate that is
+  piecewise linear between equally spaced knots (``exp(eta_k)`` at knot
+  ``k``) and constant beyond the outer knots, so ``S`` is piecewise quadratic
+  inside and linear outside (logistic tails).  The knot at ``t = 0`` has
+  ``eta = 0`` fixed, which pins the local slope at m50 and keeps ``m50`` and
+  ``w`` identifiable.  All ``eta = 0`` gives ``S(t) = -t``: the logistic is
+  the spline's smoothest member.
+* :func:`richards_logs` is ``log g`` and ``log(1 - g)`` of the generalised
+  logistic with shape ``nu = exp(log_nu)``, shifted by
+  ``c(nu) = -log(2^(1/nu) - 1)`` so that ``g = 1/2`` at ``s = 0`` whatever
+  ``nu``: ``m50`` keeps its meaning.  ``nu = 1`` is the logistic; ``nu > 1``
+  makes the faint-side roll-off slower than the bright side, ``nu < 1`` the
+  reverse.
+
+Every function is written for ``jax.jit`` and ``jax.grad``; branch selections
+use ``jnp.where`` with both branches finite, so no NaN reaches a gradient.
+"""
+
+from __future__ import annotations
+
+import jax.numpy as jnp
+
+__all__ = ["SPLINE_T0", "SPLINE_H", "spline_knots", "monotone_spline", "richards_logs", "softplus", "logaddexp"]
+
+#: First knot of the monotone spline in standardised magnitude t = (m - m50) / w.
+SPLINE_T0 = -6.0
+#: Knot spacing in t; the anchor knot (eta = 0) sits at t = 0.
+SPLINE_H = 1.0
+
+
+def spline_knots(n_free: int):
+    """Knot positions (numpy-free tuple) and the anchor index for ``n_free`` free knot parameters.
+
+    The knots are ``SPLINE_T0 + k SPLINE_H`` for ``k = 0 .. n_free``; the one at
+    ``t = 0`` (index ``-SPLINE_T0 / SPLINE_H``) is the anchor.
+    """
+    k0 = int(round(-SPLINE_T0 / SPLINE_H))
+    if n_free < k0 + 1:
+        raise ValueError(f"a monotone spline needs at least {k0 + 1} free knots (the anchor sits at index {k0}), "
+                         f"got {n_free}")
+    return tuple(SPLINE_T0 + k * SPLINE_H for k in range(n_free + 1)), k0
+
+
+def softplus(x):
+    """log(1 + exp(x)), stable, with the right derivative everywhere."""
+    pos = x > 0
+    return jnp.where(pos, x, 0.0) + jnp.log1p(jnp.exp(jnp.where(pos, -x, x)))
+
+
+def logaddexp(a, b):
+    """log(exp(a) + exp(b)); -inf (not NaN) with finite gradients when a term is -inf."""
+    first = a >= b
+    m = jnp.where(first, a, b)
+    ok = m > -jnp.inf
+    d = jnp.where(ok, jnp.where(first, b - a, a - b), 0.0)
+    return jnp.where(ok, m + jnp.log1p(jnp.exp(d)), -jnp.inf)
+
+
+def full_eta(eta_free, k0: int):
+    """The knot log-rates with the anchor's 0 inserted at index ``k0``."""
+    return jnp.concatenate([eta_free[:k0], jnp.zeros(1, dtype=eta_free.dtype), eta_free[k0:]])
+
+
+def monotone_spline(t, eta_free):
+    """``S(t)``: minus the integral from 0 to t of a positive piecewise-linear rate.
+
+    Parameters
+    ----------
+    t : array
+        Standardised magnitudes (any shape).
+    eta_free : array, shape (K,)
+        Log-rates at the knots other than the anchor (``K >= 7``).
+
+    Returns
+    -------
+    array, shape of t
+        Decreasing in t, ``S(0) = 0``; ``S(t) = -t`` when ``eta_free = 0``.
+    """
+    n_free = eta_free.shape[0]
+    k0 = int(round(-SPLINE_T0 / SPLINE_H))
+    rate = jnp.exp(full_eta(eta_free, k0))                       # (K + 1,)
+    seg = 0.5 * SPLINE_H * (rate[:-1] + rate[1:])                 # integral over each knot interval
+    cum = jnp.concatenate([jnp.zeros(1, dtype=rate.dtype), jnp.cumsum(seg)])  # I(t_k) from t_0
+    t_last = SPLINE_T0 + n_free * SPLINE_H
+    pos = (t - SPLINE_T0) / SPLINE_H
+    idx = jnp.clip(jnp.floor(pos).astype(jnp.int32), 0, n_free - 1)
+    u = t - (SPLINE_T0 + idx * SPLINE_H)  # in [0, h) inside; not clipped (a clip halves the slope at knots)
+    r0 = rate[idx]
+    r1 = rate[idx + 1]
+    inside = cum[idx] + r0 * u + (r1 - r0) * u * u / (2.0 * SPLINE_H)
+    below = rate[0] * (t - SPLINE_T0)                             # t < t_0: constant rate
+    above = cum[-1] + rate[-1] * (t - t_last)                     # t > t_last
+    integral = jnp.where(t < SPLINE_T0, below, jnp.where(t > t_last, above, inside))
+    return -(integral - cum[k0])
+
+
+def richards_logs(s, log_nu):
+    """``log g`` and ``log(1 - g)`` of ``g = (1 + exp(-(s + c)))^(-nu)``, ``c = -log(2^(1/nu) - 1)``.
+
+    Parameters
+    ----------
+    s : array
+        Shape value (positive = brighter than m50).
+    log_nu : scalar
+        ``log nu``; 0 is the logistic.
+
+    Notes
+    -----
+    ``log(1 - g) = log(-expm1(log g))`` except far on the bright side
+    (``s + c > 30``), where it is ``log nu - (s + c)`` to relative accuracy
+    ``(nu + 1) exp(-(s + c)) / 2`` (the expm1 form would round ``log g`` to 0).
+    """
+    nu = jnp.exp(log_nu)
+    c = -jnp.log(jnp.expm1(jnp.log(2.0) / nu))
+    z = s + c
+    log_g = -nu * softplus(-z)
+    far = z > 30.0
+    safe = jnp.where(far, -1.0, log_g)
+    log_1mg = jnp.where(far, log_nu - z, jnp.log(-jnp.expm1(safe)))
+    return log_g, log_1mg

@@ -1,0 +1,489 @@
+"""Checks a run makes before it writes its first byte.
+
+:func:`comest_bayes.pipeline.stages.run_pipeline` calls these after the image is read
+(and its seeing known) but before the run directory is touched, so a run that
+cannot give an answer is refused with the reason instead of writing files and
+failing later:
+
+* :func:`choose_density` -- how many injections per realization: the user's
+  density, or (``injection.density = 0``, the default) one chosen per kind from
+  the image: the published 15 per arcmin^2 where it gives at least
+  :data:`TARGET_PER_REALIZATION`; on a small field of fine pixels raised towards
+  that target but to at most :data:`PER_BACKGROUND_MESH` per background mesh
+  (more lifts the background, and m50 moves bright) and half of what random packing
+  holds at the minimum separation; lowered to that packing where 15 is more
+  (coarse pixels).  :func:`budget_warnings` says when a kind's expected usable
+  injections stay under :data:`FEW_USABLE_INJECTIONS`.
+* :func:`check_injection_count` -- can the injections give usable outcomes at
+  all?  An injection is *usable* when its centre is unmasked and its whole
+  stamp lies on the image (:mod:`comest_bayes.recover.realization`).  The stamp of a
+  point source has half-size ``h = ceil(R + 1)`` pixels, ``R`` the radius
+  holding 99.5% of the PSF's light (:mod:`comest_bayes.inject.render`); galaxies'
+  stamps are larger, so counting the unmasked pixels at least ``h`` from every
+  edge gives an upper bound on the usable fraction.  With the Poisson mean
+  ``density x area`` per realization, capped by how many fit at the minimum
+  separation, the expected number of usable injections per kind over all
+  realizations must reach :data:`MIN_USABLE_INJECTIONS`.
+* :func:`check_memory` -- does the memory the injection density implies fit?
+  Placement with a minimum separation tests candidate pairs, whose number
+  grows with the *square* of the density (``--density 1e6`` grew past 10 GB);
+  the estimate (:func:`injection_memory`) is compared with the memory
+  available (:func:`available_memory`).
+
+Everything here is a pure function of shapes, configuration and the
+machine's memory figures; nothing is written.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+from dataclasses import dataclass
+
+import numpy as np
+
+from comest_bayes.errors import ConfigError, InputError
+from comest_bayes.inject.placement import PUBLISHED_DENSITY as _PUBLISHED_DENSITY
+
+__all__ = ["MIN_USABLE_INJECTIONS", "FEW_USABLE_INJECTIONS", "SMALLEST_SEEING_PIX", "PUBLISHED_DENSITY",
+           "TARGET_PER_REALIZATION", "PER_BACKGROUND_MESH", "HOLD_FRACTION", "DensityChoice", "choose_density",
+           "choose_densities", "InjectionBudget", "stamp_half_size", "injection_budget", "check_injection_count",
+           "budget_warnings", "injection_memory", "available_memory", "check_memory"]
+
+#: Fewest expected usable injections per kind (all realizations together) a run accepts.
+MIN_USABLE_INJECTIONS = 10
+#: Below this many expected usable injections per kind (all realizations together) a run warns that
+#: its m50 will be loose: with 100 outcomes spread over 6.5 mag the 0.2-mag bins at the transition
+#: hold about 3 each.
+FEW_USABLE_INJECTIONS = 100
+#: A seeing wider than this (arcsec) given with --fwhm is questioned in the messages.
+IMPLAUSIBLE_SEEING_ARCSEC = 5.0
+#: Seeing (pixels) assumed when it cannot be measured, to tell an image too small for any injection.
+SMALLEST_SEEING_PIX = 2.0
+#: Light fraction a stamp holds (``render_truth``'s default ``flux_fraction``).
+STAMP_FLUX_FRACTION = 0.995
+#: Random sequential packing of discs stalls near this covered fraction (Feder 1980).
+JAMMING_COVERAGE = 0.547
+
+#: ComEst's published injection density, per arcmin^2 (re-exported from :mod:`comest_bayes.inject.placement`).
+PUBLISHED_DENSITY = _PUBLISHED_DENSITY
+#: Mean injections per realization the automatic density aims for where the published density gives fewer.
+TARGET_PER_REALIZATION = 100.0
+#: Most injections per background mesh (``detection.back_size`` squared pixels) the automatic density
+#: raises to.  Injections lift the background meshes of the detection run on each realization, and m50
+#: moves bright with their number: on the shared JWST image (probit m50 minus the noise prediction,
+#: mean over 7-11 seeds, +-0.013) +0.038 mag at 0.11 per 64-pixel mesh, +0.032 at 0.25, +0.000 at 0.43
+#: and -0.013 at 1 (binned m50: +0.026, -0.024, -0.026, -0.059); on 200x200 DECam cutouts 4.6 per mesh
+#: moved it 0.2 mag.  A quarter per mesh stays within the scatter of the sparse case.  (The published
+#: density gives 0.7-1.2 per mesh at ground-based pixel scales; the automatic density never goes below
+#: it.)
+PER_BACKGROUND_MESH = 0.25
+#: Fraction of the random-packing count at the minimum separation (``JAMMING_COVERAGE``) the automatic
+#: density fills at most: dart throwing still places every injection there without stalling.
+HOLD_FRACTION = 0.5
+
+
+@dataclass(frozen=True)
+class DensityChoice:
+    """How many injections of one kind a realization asks for, and why.
+
+    Attributes
+    ----------
+    kind : str
+    density : float
+        Injections per arcmin^2 used (``per_realization / area_arcmin2``).
+    per_realization : float
+        Mean injections per realization (the Poisson mean).
+    source : {"user", "automatic"}
+    rule : str
+        ``user`` (the density given), ``published`` (the published density is enough),
+        ``raised`` (the published density gives fewer than the target: raised up to the target, the
+        background cap and what the placement holds) or ``placement cap`` (the published density is
+        more than the placement holds: lowered to it).
+    reason : str
+        One sentence for the log and the report.
+    area_arcmin2, published, target, mesh_cap, hold_cap : float
+        The image's area, the count the published density gives, the target, the background cap
+        (``PER_BACKGROUND_MESH`` per mesh) and what the placement holds (inf without a minimum
+        separation), per realization.
+    min_sep_pix : float
+    """
+
+    kind: str
+    density: float
+    per_realization: float
+    source: str
+    rule: str
+    reason: str
+    area_arcmin2: float
+    published: float
+    target: float
+    mesh_cap: float
+    hold_cap: float
+    min_sep_pix: float
+
+    def to_dict(self) -> dict:
+        d = dict(self.__dict__)
+        d["hold_cap"] = d["hold_cap"] if math.isfinite(d["hold_cap"]) else None
+        return d
+
+
+def choose_density(kind: str, *, shape, pixel_scale: float, fwhm_pix: float | None, injection,
+                   back_size: int = 64) -> DensityChoice:
+    """The injection density of ``kind`` on an image: the user's, or chosen from the image.
+
+    With ``injection.density > 0`` that density is kept.  With 0 (automatic), counted per
+    realization on the whole image of area ``A``:
+
+    * ``published = PUBLISHED_DENSITY x A``;
+    * ``mesh_cap = PER_BACKGROUND_MESH x npix / back_size^2``: injections lift the background
+      meshes of the detection run on each realization, biasing m50 bright;
+    * ``hold_cap = HOLD_FRACTION x JAMMING_COVERAGE x npix / (pi r^2 / 4)``, ``r`` the kind's
+      minimum separation (:func:`comest_bayes.inject.render.min_separation_pix`): what the placement
+      holds without the injections blending with each other;
+    * the count is ``hold_cap`` when ``published`` exceeds it (coarse pixels, wide separations);
+      else ``published`` when it reaches ``TARGET_PER_REALIZATION`` (large images: the published
+      density unchanged); else ``max(published, min(TARGET_PER_REALIZATION, mesh_cap, hold_cap))``
+      (small fields of fine pixels, e.g. 1.6 per realization on a 640x640 JWST image at 0.031"/px).
+
+    ``fwhm_pix`` None (the seeing not yet known) takes a point source's separation as 0.
+    """
+    from comest_bayes.inject.render import min_separation_pix
+
+    ny, nx = (int(v) for v in shape)
+    npix = nx * ny
+    area = npix * (pixel_scale / 60.0) ** 2
+    r = float(min_separation_pix(injection, fwhm_pix, pixel_scale, kind))
+    hold = HOLD_FRACTION * JAMMING_COVERAGE * npix / (math.pi * r * r / 4.0) if r > 0 else math.inf
+    published = PUBLISHED_DENSITY * area
+    mesh = PER_BACKGROUND_MESH * npix / float(back_size) ** 2
+    facts = dict(kind=kind, area_arcmin2=area, published=published, target=TARGET_PER_REALIZATION,
+                 mesh_cap=mesh, hold_cap=hold, min_sep_pix=r)
+    if injection.density > 0:
+        n = injection.density * area
+        return DensityChoice(density=float(injection.density), per_realization=n, source="user", rule="user",
+                             reason=f"{injection.density:g} per arcmin^2 as given ({n:.1f} per realization)", **facts)
+    held = f"{hold:.1f} held by the placement at the {r:.1f} px minimum separation" if r > 0 else ""
+    if published > hold:
+        n, rule = hold, "placement cap"
+        why = (f"the published {PUBLISHED_DENSITY:g} per arcmin^2 would ask for {published:.0f} per realization, "
+               f"more than the placement holds: lowered to the {held}")
+    elif published >= TARGET_PER_REALIZATION:
+        n, rule = published, "published"
+        why = (f"the published {PUBLISHED_DENSITY:g} per arcmin^2, {n:.0f} per realization (at least the "
+               f"target of {TARGET_PER_REALIZATION:g})")
+    else:
+        n = max(published, min(TARGET_PER_REALIZATION, mesh, hold))
+        limits = [f"the target {TARGET_PER_REALIZATION:g}", f"{mesh:.1f} ({PER_BACKGROUND_MESH:g} per "
+                  f"{back_size}x{back_size} background mesh)"] + ([held] if held else [])
+        if n == published:
+            rule = "published"
+            why = (f"the published {PUBLISHED_DENSITY:g} per arcmin^2, {n:.1f} per realization (no fewer than the "
+                   f"smallest of {', '.join(limits)})")
+        else:
+            rule = "raised"
+            why = (f"the published {PUBLISHED_DENSITY:g} per arcmin^2 gives only {published:.1f} per realization on "
+                   f"this {nx}x{ny} image; raised to {n:.1f}, the smallest of {', '.join(limits)}")
+    density = PUBLISHED_DENSITY if n == published else n / area  # (15, not 15.000000000000002)
+    return DensityChoice(density=density, per_realization=n, source="automatic", rule=rule,
+                         reason=f"{density:.4g} per arcmin^2, automatic: {why}", **facts)
+
+
+def choose_densities(*, shape, pixel_scale: float, fwhm_pix: float | None, injection,
+                     back_size: int = 64) -> dict:
+    """:func:`choose_density` for every kind of ``injection.kinds``: ``{kind: DensityChoice}``."""
+    return {kind: choose_density(kind, shape=shape, pixel_scale=pixel_scale, fwhm_pix=fwhm_pix,
+                                 injection=injection, back_size=back_size) for kind in injection.kinds}
+
+
+# Memory model of one realization, measured on this package's code (tracemalloc and peak RSS):
+#: bytes per image pixel held by a worker (image, mask and noise copies, the rendered image,
+#: detection buffers): 1.7 GB at 8192^2 in the injection benchmark.
+PIXEL_BYTES = 25.0
+#: bytes per placement candidate (positions, k-d tree, distances; 1.25 candidates per injection asked for).
+CANDIDATE_BYTES = 80.0
+#: bytes per candidate pair closer than the minimum separation (scipy's query_pairs output).
+PAIR_BYTES = 16.0
+#: bytes per placed injection in a worker (truth row, stamp, matching) and in the merge (all tables).
+INJECTION_BYTES = 2000.0
+#: Environment variable overriding the memory budget, in GB (e.g. on a cluster node whose limit differs).
+MEMORY_ENV = "COMEST_BAYES_MEMORY_GB"
+
+
+@dataclass(frozen=True)
+class InjectionBudget:
+    """What one kind's injections can give on an image.
+
+    Attributes
+    ----------
+    kind : str
+    density : float
+        Injections asked for per arcmin^2.
+    requested : float
+        Mean injections asked for per realization (density x area).
+    placeable : float
+        How many fit at the minimum separation (inf without one).
+    min_sep_pix : float
+    stamp_half : int
+        Half-size (pixels) of a point-source stamp (the smallest stamp).
+    inner_fraction : float
+        Fraction of the image's pixels that are unmasked and at least
+        ``stamp_half`` from every edge.
+    usable_per_realization : float
+        Expected usable injections per realization (an upper bound).
+    """
+
+    kind: str
+    density: float
+    requested: float
+    placeable: float
+    min_sep_pix: float
+    stamp_half: int
+    inner_fraction: float
+    usable_per_realization: float
+
+    @property
+    def placed(self) -> float:
+        return min(self.requested, self.placeable)
+
+
+def stamp_half_size(injection, fwhm_pix: float, pixel_scale: float) -> int:
+    """Half-size in pixels of a point source's stamp (the smallest an injection gets)."""
+    import galsim
+
+    from comest_bayes.inject.render import psf_enclosed_radius_pix
+    from comest_bayes.inject.sources import make_psf
+
+    psf = make_psf(injection, fwhm_pix, pixel_scale)
+    radius, _ = psf_enclosed_radius_pix(galsim.PixelScale(pixel_scale).toImage(psf), STAMP_FLUX_FRACTION)
+    return max(2, int(math.ceil(radius + 1.0)))
+
+
+def _inner_unmasked(mask: np.ndarray, half: int) -> int:
+    ny, nx = mask.shape
+    if nx <= 2 * half or ny <= 2 * half:
+        return 0
+    return int(np.count_nonzero(~mask[half:ny - half, half:nx - half]))
+
+
+def injection_budget(kind: str, *, shape, mask, pixel_scale: float, fwhm_pix: float, injection,
+                     stamp_half: int | None = None, density: float | None = None) -> InjectionBudget:
+    """Expected injections of ``kind`` per realization on an image (see the module docstring).
+
+    ``density`` (per arcmin^2) overrides ``injection.density`` (e.g. the automatic choice of
+    :func:`choose_density`); an automatic ``injection.density`` of 0 without it counts at the
+    published density.
+    """
+    from comest_bayes.inject.render import min_separation_pix
+
+    density = float(density if density is not None else (injection.density or PUBLISHED_DENSITY))
+    ny, nx = (int(v) for v in shape)
+    npix = nx * ny
+    area = npix * (pixel_scale / 60.0) ** 2
+    requested = density * area
+    r = float(min_separation_pix(injection, fwhm_pix, pixel_scale, kind))
+    placeable = JAMMING_COVERAGE * npix / (math.pi * r * r / 4.0) if r > 0 else math.inf
+    half = stamp_half if stamp_half is not None else stamp_half_size(injection, fwhm_pix, pixel_scale)
+    mask = np.zeros((ny, nx), bool) if mask is None else np.asarray(mask, bool)
+    inner = _inner_unmasked(mask, half) / npix
+    return InjectionBudget(kind=kind, density=density, requested=requested, placeable=placeable, min_sep_pix=r, stamp_half=half,
+                           inner_fraction=inner, usable_per_realization=min(requested, placeable) * inner)
+
+
+def check_injection_count(*, shape, mask, pixel_scale: float, fwhm_pix: float | None, injection,
+                          fwhm_given: bool = False, fwhm_assumed: bool = False,
+                          densities: dict | None = None) -> list[InjectionBudget]:
+    """Refuse a run whose injections cannot give :data:`MIN_USABLE_INJECTIONS` usable outcomes per kind.
+
+    With ``fwhm_pix=None`` (the seeing not yet measured) only the count
+    without stamps is checked: density x unmasked area x realizations.
+    ``fwhm_given`` (the user's ``--fwhm``) adds a hint when the seeing is
+    implausibly wide; ``fwhm_assumed`` words the message for a seeing assumed
+    because it could not be measured.  ``densities`` maps each kind to its
+    density per arcmin^2 or its :class:`DensityChoice`; by default
+    :func:`choose_densities` on the image (the user's density when given).
+
+    Returns
+    -------
+    list of InjectionBudget
+        One per kind (empty when ``fwhm_pix`` is None).
+
+    Raises
+    ------
+    InputError
+        With the numbers and what to change.
+    """
+    ny, nx = (int(v) for v in shape)
+    mask = np.zeros((ny, nx), bool) if mask is None else np.asarray(mask, bool)
+    unmasked_area = float(np.count_nonzero(~mask)) * (pixel_scale / 60.0) ** 2
+    nsims = int(injection.nsims)
+    if densities is None:
+        densities = choose_densities(shape=(ny, nx), pixel_scale=pixel_scale, fwhm_pix=fwhm_pix, injection=injection)
+    chosen = {k: (v.density if isinstance(v, DensityChoice) else float(v)) for k, v in densities.items()}
+    density = max(chosen.values())
+    upper = density * unmasked_area * nsims
+    # (an automatic density lowered to what the placement holds at a known seeing is judged per kind below,
+    # where the message can say why)
+    if upper < MIN_USABLE_INJECTIONS and (fwhm_pix is None or injection.density > 0):
+        how = "" if injection.density > 0 else " (chosen automatically)"
+        raise InputError(
+            f"too few injections possible: {density:.4g} per arcmin^2{how} on this image's "
+            f"{unmasked_area:.4g} arcmin^2 of unmasked area ({nx}x{ny} pixels of {pixel_scale:.3g}\") over "
+            f"{nsims} realization(s) is {upper:.1f} injections per kind, and at least {MIN_USABLE_INJECTIONS} "
+            f"usable ones are needed. Raise --nsims or --density, or use a larger image.")
+    if fwhm_pix is None:
+        return []
+    budgets = []
+    half = stamp_half_size(injection, fwhm_pix, pixel_scale)
+    for kind in injection.kinds:
+        b = injection_budget(kind, shape=(ny, nx), mask=mask, pixel_scale=pixel_scale, fwhm_pix=fwhm_pix,
+                             injection=injection, stamp_half=half, density=chosen[kind])
+        budgets.append(b)
+        total = b.usable_per_realization * nsims
+        if total >= MIN_USABLE_INJECTIONS:
+            continue
+        side = 2 * half + 1
+        if fwhm_assumed:
+            seeing = (f"even at a seeing FWHM as small as {fwhm_pix:.3g} px (the seeing could not be measured on "
+                      f"this image)")
+        else:
+            seeing = f"at the seeing FWHM of {fwhm_pix:.3g} px"
+            if fwhm_given and fwhm_pix * pixel_scale > IMPLAUSIBLE_SEEING_ARCSEC:
+                seeing += f" = {fwhm_pix * pixel_scale:.3g}\" (--fwhm is in pixels: is that right?)"
+        stamp = f"a point source's stamp (99.5% of its light) is {side}x{side} pixels {seeing}"
+        if nx <= 2 * half or ny <= 2 * half:
+            raise InputError(
+                f"no injection can be usable on this {nx}x{ny} image: {stamp}, and an injection counts only when "
+                f"its stamp lies wholly on the image. Use an image larger than {side} pixels on each side.")
+        if b.inner_fraction == 0:
+            raise InputError(
+                f"no injection can be usable on this {nx}x{ny} image: {stamp}, and every pixel at least {half} px "
+                f"from the edges, where a stamp fits, is masked. Check the mask and --mask-bits.")
+        cap = ""
+        if b.placeable < b.requested:
+            cap = (f"; only about {b.placeable:.0f} fit at the minimum separation of {b.min_sep_pix:.1f} px, "
+                   f"so lower injection.min_sep")
+        raise InputError(
+            f"too few usable {kind} injections expected: {total:.1f} over {nsims} realization(s) "
+            f"({b.requested:.1f} asked for per realization at {b.density:.4g} per arcmin^2{cap}; "
+            f"{stamp}, and only {100 * b.inner_fraction:.0f}% of the pixels are unmasked and at least {half} px "
+            f"from the edges), and at least {MIN_USABLE_INJECTIONS} are needed. Raise --nsims or --density, or use "
+            f"a larger image.")
+    return budgets
+
+
+def budget_warnings(budgets, nsims: int) -> list[str]:
+    """Warnings for kinds whose expected usable injections, all realizations together, stay under
+    :data:`FEW_USABLE_INJECTIONS` (the run goes on; its m50 will be loose)."""
+    out = []
+    for b in budgets:
+        total = b.usable_per_realization * int(nsims)
+        if total >= FEW_USABLE_INJECTIONS:
+            continue
+        held = (f"; only about {b.placeable:.1f} fit per realization at the {b.min_sep_pix:.0f} px minimum "
+                f"separation" if b.placeable < b.requested else "")
+        need = math.ceil(FEW_USABLE_INJECTIONS / max(b.usable_per_realization, 1e-9))
+        out.append(f"only about {total:.0f} usable {b.kind} injections expected over {nsims} realization(s) "
+                   f"({b.placed:.1f} per realization{held}; {100 * b.inner_fraction:.0f}% of the pixels lie far "
+                   f"enough from the edges for a point-source stamp, fewer for a galaxy's): its completeness will "
+                   f"be loose. About {need} realizations would give {FEW_USABLE_INJECTIONS} (--nsims).")
+    return out
+
+
+def injection_memory(budgets, *, npix: int, nsims: int, workers: int) -> float:
+    """Peak memory (bytes) the injection stage adds, from the model of the module constants.
+
+    Per worker: ``PIXEL_BYTES npix`` plus placement (``CANDIDATE_BYTES`` per
+    candidate and ``PAIR_BYTES`` per candidate pair closer than the minimum
+    separation, ``m^2 pi r^2 / (2 npix)`` for ``m = 1.25 n + 32``) plus
+    ``INJECTION_BYTES`` per placed injection; times the workers busy at once;
+    plus the merge of one kind's realizations in the main process.
+    """
+    per_worker = max((_realization_bytes(b, npix) for b in budgets), default=0.0)
+    merge = max((INJECTION_BYTES * b.placed * nsims for b in budgets), default=0.0)
+    return _busy(workers, nsims, budgets) * per_worker + merge
+
+
+def _realization_bytes(b: InjectionBudget, npix: int) -> float:
+    m = 1.25 * b.requested + 32.0
+    pairs = 0.0
+    if b.min_sep_pix > 0:
+        pairs = min(m * m / 2.0, m * m * math.pi * b.min_sep_pix ** 2 / (2.0 * npix))
+    return PIXEL_BYTES * npix + CANDIDATE_BYTES * m + PAIR_BYTES * pairs + INJECTION_BYTES * b.placed
+
+
+def _busy(workers: int, nsims: int, budgets) -> int:
+    return max(1, min(int(workers), nsims * max(1, len(budgets))))
+
+
+def _meminfo_available() -> int | None:
+    try:
+        with open("/proc/meminfo") as fh:
+            for line in fh:
+                if line.startswith("MemAvailable:"):
+                    return int(line.split()[1]) * 1024
+    except (OSError, ValueError, IndexError):
+        pass
+    try:
+        return int(os.sysconf("SC_AVPHYS_PAGES")) * int(os.sysconf("SC_PAGE_SIZE"))
+    except (ValueError, OSError, AttributeError):
+        return None
+
+
+def _cgroup_available() -> int | None:
+    try:
+        with open("/sys/fs/cgroup/memory.max") as fh:
+            limit = fh.read().strip()
+        if limit == "max":
+            return None
+        with open("/sys/fs/cgroup/memory.current") as fh:
+            current = int(fh.read().strip())
+        return max(0, int(limit) - current)
+    except (OSError, ValueError):
+        return None
+
+
+def available_memory() -> tuple[float | None, str]:
+    """Memory (bytes) a run may use and where the figure comes from.
+
+    ``$COMEST_BAYES_MEMORY_GB`` when set; else the smaller of the system's
+    available memory (``MemAvailable``) and the room left under the
+    process's cgroup limit; None when neither is known.
+    """
+    env = os.environ.get(MEMORY_ENV)
+    if env:
+        try:
+            value = float(env)
+            if not value > 0:
+                raise ValueError
+        except ValueError:
+            raise ConfigError(f"{MEMORY_ENV}={env!r} must be a positive number of GB.") from None
+        return value * 2 ** 30, f"set by ${MEMORY_ENV}"
+    known = [v for v in (_meminfo_available(), _cgroup_available()) if v is not None]
+    if not known:
+        return None, "unknown"
+    return float(min(known)), "available on this machine"
+
+
+def check_memory(budgets, *, npix: int, nsims: int, workers: int) -> float:
+    """Refuse when the injection stage's memory estimate exceeds :func:`available_memory`.
+
+    Returns the estimate (bytes).
+    """
+    need = injection_memory(budgets, npix=npix, nsims=nsims, workers=workers)
+    have, source = available_memory()
+    if have is None or need <= have:
+        return need
+    worst = max(budgets, key=lambda b: _realization_bytes(b, npix))
+    hint = ""
+    if math.isfinite(worst.placeable) and worst.placeable < worst.requested:
+        density_cap = worst.density * worst.placeable / worst.requested
+        hint = (f" At the minimum separation of {worst.min_sep_pix:.1f} px only about {worst.placeable:,.0f} "
+                f"injections fit per realization anyway (a density of about {density_cap:,.0f} per arcmin^2).")
+    busy = _busy(workers, nsims, budgets)
+    raise InputError(
+        f"the injections would need about {need / 2 ** 30:,.1f} GB of memory ({worst.requested:,.0f} asked for "
+        f"per {worst.kind} realization, {busy} realization{'s' if busy > 1 else ''} at once), more than the "
+        f"{have / 2 ** 30:,.1f} GB {source}.{hint} Lower --density or --ncpu (or set {MEMORY_ENV} to "
+        f"another budget). Nothing was written.")
+

@@ -1,0 +1,399 @@
+"""Injection and recovery: one realization, and the merge of many.
+
+A *realization* injects one Poisson-drawn set of synthetic sources of one
+kind onto the base image (the source-free or bright-and-big image),
+re-detects with the identical detection configuration, and matches
+injections to detections one-to-one.  Its only randomness comes from the
+streams ``("inject", kind, index)`` and ``("render", kind, index)`` of the
+root seed, so a realization gives the same numbers wherever and whenever it
+runs.
+
+Detections on a realization fall in three classes:
+
+* **matched** to an injection;
+* **pre-existing**: coincident with a source that is detected on the bare
+  base image too (a kept bright source of a BnB image, or a faint real source
+  that surfaces once the bright ones are gone); these are neither injections
+  nor false detections, and are left out of purity;
+* **near an unusable injection**: unmatched, within the matching radius of an
+  injection that is not usable (centre on a masked pixel, or stamp cut by the
+  image border), whose light the detector may still see with a spoiled
+  magnitude; left out of purity too;
+* **false**: everything else.
+
+An injection is *usable* when its centre is not masked and it was drawn
+whole (truth ``flag == 0``); only usable injections enter the ratios and the
+outcome table.
+
+Output tables (merged over realizations by :func:`merge_realizations`):
+
+``injected``
+    every injection (the truth) with its outcome columns;
+``matched``
+    detected injections, truth and measured columns side by side;
+``unmatched``
+    injections that were not detected;
+``false``
+    false detections;
+``outcomes``
+    one row per usable injection (centre not masked, drawn without failure):
+    the inputs of the completeness model (x, y, mag, size, local noise),
+    ``detected``, the measured magnitude and size, flags and realization.
+"""
+
+from __future__ import annotations
+
+import functools
+import os
+import time
+import traceback
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+from astropy.io import fits
+from astropy.table import Table, vstack
+from astropy.wcs import WCS
+
+from comest_bayes.config import DetectionConfig, InjectionConfig, MatchingConfig
+from comest_bayes.errors import InputError
+from comest_bayes.recover.matching import classify_detections, match_one_to_one
+from comest_bayes.seeding import int_seed_for, rng_for
+
+__all__ = ["SimContext", "RealizationTask", "RealizationResult", "run_realization", "merge_realizations",
+           "realization_file", "OUTCOME_COLUMNS"]
+
+#: Measured columns copied from the detection catalog next to each injection (prefixed ``det_``).
+MEASURED = ("id", "xwin", "ywin", "mag_auto", "magerr_auto", "mag_aper", "flux_auto", "snr_auto",
+            "flux_radius", "a", "b", "npix", "flags")
+
+#: Columns of the outcome table read by the completeness model.
+OUTCOME_COLUMNS = {
+    "realization": "index of the realization (simulated image)",
+    "injection_id": "index of the injection within its realization",
+    "x": "true x, 0-based pixel",
+    "y": "true y, 0-based pixel",
+    "ra": "true right ascension (deg)",
+    "dec": "true declination (deg)",
+    "mag": "true magnitude",
+    "hlr_arcsec": "true half-light radius (arcsec; NaN for point sources)",
+    "noise": "detection noise sigma at the true position (image units)",
+    "detected": "True when matched one-to-one to a detection",
+    "det_mag_auto": "measured MAG_AUTO (NaN when not detected)",
+    "det_flux_radius": "measured FLUX_RADIUS in pixels (NaN when not detected)",
+    "det_flags": "detection FLAGS (-1 when not detected)",
+    "separation": "distance between true and measured position, pixels (NaN when not detected)",
+}
+
+
+@dataclass(frozen=True)
+class SimContext:
+    """Everything a realization needs, by value or by path (picklable, small).
+
+    Large arrays travel as file paths and are read once per worker process.
+    """
+
+    base_path: str
+    mask_path: str
+    noise_path: str
+    baseline_path: str
+    detection_path: str
+    shape: tuple
+    wcs_header: str | None
+    zeropoint: float
+    gain: float | None
+    saturation: float | None
+    pixel_scale: float
+    fwhm: float
+    mag_range: tuple
+    noise_mode: str
+    detection: DetectionConfig
+    injection: InjectionConfig
+    matching: MatchingConfig
+    root_seed: int
+    image_dir: str | None = None
+    #: Moffat beta of the injection PSF (0: ``injection.moffat_beta``, or 3 when that is 0 too).
+    psf_beta: float = 0.0
+    #: The analytic PSF is convolved with the pixel (its FWHM and beta were fitted pixel-integrated).
+    psf_pixel_integrated: bool = False
+
+    @property
+    def wcs(self):
+        return None if self.wcs_header is None else _wcs_from_text(self.wcs_header)
+
+
+@dataclass(frozen=True)
+class RealizationTask:
+    """One realization to run; ``design`` (a :meth:`MagnitudeDesign.to_dict`) draws an adaptive batch's magnitudes."""
+
+    context: SimContext
+    kind: str
+    index: int
+    design: dict | None = None
+
+
+@dataclass
+class RealizationResult:
+    """Tables of one realization; ``error`` is set (and tables are None) if it failed."""
+
+    kind: str
+    index: int
+    truth: Table | None
+    detections: Table | None
+    seconds: dict = field(default_factory=dict)
+    error: str | None = None
+
+
+@functools.lru_cache(maxsize=4)
+def _wcs_from_text(text: str):
+    return WCS(fits.Header.fromstring(text), relax=True)
+
+
+def _file_key(path: str) -> tuple:
+    """A cache key naming a file's content: a file rewritten under the same path is read again.
+
+    The caches below live as long as the process (a notebook, a serial run, a long-lived Dask
+    worker); keyed by path alone, a second run into a removed and recreated run directory would
+    silently reuse the first run's images.
+    """
+    st = os.stat(path)
+    return (str(path), st.st_mtime_ns, st.st_size, st.st_ino)
+
+
+def _arrays(base_path: str, mask_path: str, noise_path: str):
+    return _arrays_cached(_file_key(base_path), _file_key(mask_path), _file_key(noise_path))
+
+
+@functools.lru_cache(maxsize=2)
+def _arrays_cached(base_key: tuple, mask_key: tuple, noise_key: tuple):
+    base = fits.getdata(base_key[0]).astype(np.float32)
+    mask = fits.getdata(mask_key[0]).astype(bool)
+    noise = fits.getdata(noise_key[0]).astype(np.float32)
+    # Checked once per process and file: realizations add finite stamps to this base and then skip
+    # the check (detect_array(check_finite=False)), which would otherwise cost a full-image pass each.
+    if mask.shape != base.shape:
+        raise InputError(f"the mask {mask_key[0]} has shape {mask.shape} but the base image {base_key[0]} "
+                         f"{base.shape}; rerun the pipeline's stages that write them.")
+    if (~np.isfinite(base) & ~mask).any():
+        raise InputError(f"the base image {base_key[0]} holds NaN or infinite values in unmasked pixels; "
+                         f"mask them (load_image does this) and rerun the pipeline's stages that write it.")
+    return base, mask, noise
+
+
+def _table(path: str) -> Table:
+    return _table_cached(_file_key(path))
+
+
+@functools.lru_cache(maxsize=2)
+def _table_cached(key: tuple) -> Table:
+    return Table.read(key[0])
+
+
+@functools.lru_cache(maxsize=2)
+def _psf(injection: InjectionConfig, fwhm: float, pixel_scale: float, beta: float = 0.0,
+         pixel_integrated: bool = False):
+    from comest_bayes.inject.sources import make_psf
+
+    return make_psf(injection, fwhm, pixel_scale, beta=beta if beta > 0 else None, pixel_integrated=pixel_integrated)
+
+
+@functools.lru_cache(maxsize=1)
+def _cosmos(injection: InjectionConfig):
+    from comest_bayes.inject.sources import load_cosmos
+
+    return load_cosmos(injection)
+
+
+def realization_file(directory, kind: str, index: int) -> Path:
+    return Path(directory) / kind / f"r{index:05d}.fits"
+
+
+def _detect(image, mask, noise, ctx: SimContext):
+    """Re-detect with the run's detection configuration and resolved noise mode.
+
+    ``image`` is the realization's private rendered copy and is consumed: SEP
+    subtracts the background in it (``inplace=True``).  No segmentation map
+    is built, and the finiteness check was made once on the base image
+    (:func:`_arrays_cached`).  The catalog is the same as
+    :func:`~comest_bayes.detect.sep_backend.detect_array`'s default path gives.
+    """
+    from comest_bayes.detect.sep_backend import detect_with_backend
+
+    return detect_with_backend(image, mask=mask, weight_noise=noise if ctx.noise_mode == "weight" else None,
+                               zeropoint=ctx.zeropoint, gain=ctx.gain, saturation=ctx.saturation, wcs=ctx.wcs,
+                               config=ctx.detection, segmentation=False, inplace=True, check_finite=False)
+
+
+def run_realization(task: RealizationTask) -> RealizationResult:
+    """Inject, re-detect and match one realization (runs in a worker).
+
+    Never raises for a failure inside the realization: the error and its
+    traceback are returned so one bad realization does not stop a run.
+    """
+    try:
+        return _run_realization(task)
+    except Exception:  # one bad realization never kills a run
+        return RealizationResult(task.kind, task.index, None, None, error=traceback.format_exc(limit=8))
+
+
+def _run_realization(task: RealizationTask) -> RealizationResult:
+    from comest_bayes.inject.render import make_truth, render_truth
+
+    ctx, kind, index = task.context, task.kind, task.index
+    t0 = time.perf_counter()
+    c0 = time.process_time()
+    base, mask, noise = _arrays(ctx.base_path, ctx.mask_path, ctx.noise_path)
+    cosmos = _cosmos(ctx.injection) if kind == "cosmos" else None
+    observed = _table(ctx.detection_path) if kind == "observed" else None
+    psf = _psf(ctx.injection, ctx.fwhm, ctx.pixel_scale, ctx.psf_beta, ctx.psf_pixel_integrated)
+    design = None
+    if task.design is not None:
+        from comest_bayes.inject.design import MagnitudeDesign
+
+        design = MagnitudeDesign.from_dict(task.design)
+    truth = make_truth(kind, shape=base.shape, mask=mask, pixel_scale=ctx.pixel_scale, fwhm_pix=ctx.fwhm,
+                       config=ctx.injection, mag_range=ctx.mag_range, rng=rng_for(ctx.root_seed, "inject", kind, index),
+                       wcs=ctx.wcs, zeropoint=ctx.zeropoint, observed_catalog=observed, cosmos=cosmos, psf=psf,
+                       mag_design=design)
+    t1 = time.perf_counter()
+    image, truth = render_truth(base, truth, psf=psf, config=ctx.injection,
+                                pixel_scale=ctx.pixel_scale, gain=ctx.gain, zeropoint=ctx.zeropoint,
+                                rng_seed=int_seed_for(ctx.root_seed, "render", kind, index), cosmos=cosmos,
+                                wcs=ctx.wcs)
+    t2 = time.perf_counter()
+    seconds = {"make": t1 - t0, "render": t2 - t1}
+    if ctx.image_dir:  # before detection, which subtracts the background in place
+        from comest_bayes.io.rundir import atomic_path
+
+        path = Path(ctx.image_dir) / kind / f"image_r{index:05d}.fits"
+        path.parent.mkdir(parents=True, exist_ok=True)
+        with atomic_path(path) as tmp:
+            fits.PrimaryHDU(image).writeto(tmp)
+        seconds["image"] = time.perf_counter() - t2
+        t2 = time.perf_counter()
+    det = _detect(image, mask, noise, ctx)
+    t3 = time.perf_counter()
+    del image
+    truth, dets = match_realization(truth, det.catalog, _table(ctx.baseline_path), noise, ctx)
+    truth["realization"] = np.full(len(truth), index, dtype=np.int32)
+    dets["realization"] = np.full(len(dets), index, dtype=np.int32)
+    seconds.update(detect=t3 - t2, match=time.perf_counter() - t3, cpu=time.process_time() - c0)
+    return RealizationResult(kind, index, truth, dets, seconds=seconds)
+
+
+def match_realization(truth: Table, catalog: Table, baseline: Table, noise: np.ndarray, ctx: SimContext):
+    """Attach outcome columns to the truth and class columns to the detections.
+
+    Returns the truth (with ``usable``, ``detected``, ``separation``,
+    ``noise`` and the ``det_*`` measured columns) and the detection catalog
+    (with ``matched``, ``injection_id``, ``preexisting``, ``near_unusable`` and ``false``).
+    """
+    radius = ctx.matching.radius_fwhm * ctx.fwhm
+    magcol = ctx.matching.mag_column
+    if magcol not in catalog.colnames:
+        raise KeyError(f"matching.mag_column={magcol!r} is not a detection column")
+    det_mag = np.asarray(catalog[magcol], dtype=float)
+    if det_mag.ndim == 2:
+        det_mag = det_mag[:, 0]
+    res = match_one_to_one(np.asarray(truth["x"], float), np.asarray(truth["y"], float),
+                           np.asarray(truth["mag"], float), np.asarray(catalog["xwin"], float),
+                           np.asarray(catalog["ywin"], float), det_mag, radius=radius, mag_tol=ctx.matching.mag_tol)
+    dx, dy = np.asarray(catalog["xwin"], float), np.asarray(catalog["ywin"], float)
+    cls = classify_detections(dx, dy, res.det_matched, kept_x=np.asarray(baseline["xwin"], float),
+                              kept_y=np.asarray(baseline["ywin"], float), radius=radius)
+    usable = ~np.asarray(truth["masked"], bool) & (np.asarray(truth["flag"]) == 0)
+    # Light of an unusable injection (centre masked, stamp cut by the border) can still be detected,
+    # with a magnitude spoiled by the mask; such detections are neither real false detections nor
+    # countable matches, so they are left out of purity like pre-existing sources.
+    near_unusable = classify_detections(dx, dy, res.det_matched, kept_x=np.asarray(truth["x"], float)[~usable],
+                                        kept_y=np.asarray(truth["y"], float)[~usable], radius=radius).kept
+    n = len(truth)
+    out = truth.copy(copy_data=False)
+    out.meta = {}  # per-realization facts (placement, timings) are not catalog columns
+    out["usable"] = usable
+    out["detected"] = res.det_of_truth >= 0
+    sep = np.full(n, np.nan)
+    sep[res.truth_index] = res.separation
+    out["separation"] = sep
+    out["separation"].unit = "pix"
+    iy = np.clip(np.floor(np.asarray(truth["y"]) + 0.5).astype(int), 0, noise.shape[0] - 1)
+    ix = np.clip(np.floor(np.asarray(truth["x"]) + 0.5).astype(int), 0, noise.shape[1] - 1)
+    out["noise"] = noise[iy, ix].astype(float)
+    for name in MEASURED:
+        col = np.asarray(catalog[name])
+        fill = -1 if col.dtype.kind in "iu" else np.nan
+        values = np.full((n,) + col.shape[1:], fill, dtype=col.dtype if col.dtype.kind in "iu" else float)
+        values[res.truth_index] = col[res.det_index]
+        out[f"det_{name}"] = values
+        if catalog[name].unit is not None:
+            out[f"det_{name}"].unit = catalog[name].unit
+    dets = catalog.copy(copy_data=False)
+    dets.meta = {}
+    dets["matched"] = res.det_matched
+    # A realization may hold no injection at all (a small field at a low density draws zero from the
+    # Poisson distribution): every detection is then unmatched, and there is no id to look up.
+    ids = np.asarray(truth["injection_id"], dtype=np.int64)
+    injection_id = np.full(len(catalog), -1, dtype=np.int64)
+    hit = res.truth_of_det >= 0
+    injection_id[hit] = ids[res.truth_of_det[hit]]
+    dets["injection_id"] = injection_id
+    dets["preexisting"] = cls.kept
+    dets["near_unusable"] = near_unusable & ~cls.kept
+    dets["false"] = cls.false & ~near_unusable
+    return out, dets
+
+
+def write_realization(result: RealizationResult, directory) -> Path:
+    """Write one realization's two tables atomically as ``<kind>/rNNNNN.fits``."""
+    from comest_bayes.io.rundir import atomic_path
+
+    path = realization_file(directory, result.kind, result.index)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    hdus = fits.HDUList([fits.PrimaryHDU(), fits.table_to_hdu(result.truth), fits.table_to_hdu(result.detections)])
+    hdus[1].name, hdus[2].name = "TRUTH", "DETECTIONS"
+    for key, value in result.seconds.items():
+        hdus[0].header[f"T_{key[:6].upper()}"] = (round(value, 4), f"seconds spent in {key}")
+    with atomic_path(path) as tmp:
+        hdus.writeto(tmp)
+    return path
+
+
+def _table_with_units(hdu) -> Table:
+    """The rows of a realization's table HDU as they were written, with the column units (TUNITn) it carries."""
+    table = Table(hdu.data)
+    for col in hdu.columns:
+        if col.unit:
+            table[col.name].unit = col.unit
+    return table
+
+
+def merge_realizations(directory, kind: str, indices) -> dict:
+    """Read the realizations of one kind and build the four catalogs plus the outcome table."""
+    truths, dets, seconds = [], [], {}
+    for i in indices:
+        path = realization_file(directory, kind, i)
+        with fits.open(path) as hdul:
+            truths.append(_table_with_units(hdul["TRUTH"]))
+            dets.append(_table_with_units(hdul["DETECTIONS"]))
+            for key, value in hdul[0].header.items():
+                if key.startswith("T_"):
+                    seconds[key[2:].lower()] = seconds.get(key[2:].lower(), 0.0) + float(value)
+    truth = vstack(truths, metadata_conflicts="silent") if truths else Table()
+    det = vstack(dets, metadata_conflicts="silent") if dets else Table()
+    for t in (truth, det):
+        for name in t.colnames:
+            if t[name].dtype.kind == "S":
+                t[name] = np.char.decode(t[name])
+    detected = np.asarray(truth["detected"], bool)
+    injected = truth
+    matched = truth[detected]
+    unmatched = truth[~detected]
+    false = det[np.asarray(det["false"], bool)]
+    usable = np.asarray(truth["usable"], bool)
+    keep = [c for c in OUTCOME_COLUMNS if c in truth.colnames]
+    outcomes = truth[usable][keep]
+    for name, desc in OUTCOME_COLUMNS.items():
+        if name in outcomes.colnames:
+            outcomes[name].description = desc
+    return {"injected": injected, "matched": matched, "unmatched": unmatched, "false": false,
+            "outcomes": outcomes, "detections": det, "seconds": seconds}
