@@ -37,7 +37,8 @@ from scipy import special, stats
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
 from comest_bayes.bayes.inference import fit_map, laplace, sample_posterior  # noqa: E402
-from comest_bayes.bayes.likelihood import CompletenessModel, Covariates, uncompressed  # noqa: E402
+from comest_bayes.bayes.model import CompletenessModel
+from comest_bayes.bayes.outcomes import Covariates, uncompressed
 from comest_bayes.seeding import int_seed_for, rng_for  # noqa: E402
 
 TRUTH = {"m50_0": 24.5, "w": 0.2, "A": 0.97, "floor": 0.01, "beta_depth": 1.0}

@@ -5,7 +5,7 @@ completeness (magnitudes uniform in [22, 27], depth ``d ~ N(0, 0.3)`` mag),
 and for the models ``logistic`` and ``logistic_depth``, measures in one
 process per model:
 
-* ``compress``: :func:`comest_bayes.bayes.likelihood.compress_for` (default grid),
+* ``compress``: :func:`comest_bayes.bayes.outcomes.compress_for` (default grid),
   and the number of binomial cells G it gives;
 * ``map``: :func:`comest_bayes.bayes.inference.fit_map` (6 starts), JAX compilation
   for the data shape included (it is paid once per fit in the pipeline too);
@@ -40,7 +40,8 @@ from scipy import special
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
 from comest_bayes.bayes.inference import fit_map, laplace, sample_posterior  # noqa: E402
-from comest_bayes.bayes.likelihood import CompletenessModel, Covariates, compress_for  # noqa: E402
+from comest_bayes.bayes.model import CompletenessModel
+from comest_bayes.bayes.outcomes import Covariates, compress_for
 from comest_bayes.seeding import rng_for  # noqa: E402
 
 

@@ -107,7 +107,8 @@ def sample_powerlaw(rng, log_n, slope, area, lo, hi, m_ref=23.0):
 
 def fit_completeness(rng, ninj, seed):
     from comest_bayes.bayes.inference import fit
-    from comest_bayes.bayes.likelihood import CompletenessModel, compress_for, covariates_from_outcomes
+    from comest_bayes.bayes.model import CompletenessModel
+    from comest_bayes.bayes.outcomes import compress_for, covariates_from_outcomes
     from comest_bayes.bayes.spec import load_spec
     from comest_bayes.bayes.posterior import CompletenessPosterior
 

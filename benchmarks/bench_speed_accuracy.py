@@ -84,7 +84,8 @@ from astropy.table import Table
 from comest_bayes.ratios import binned as R
 from comest_bayes.config import load_config
 from comest_bayes.bayes.inference import fit_map, laplace, sample_posterior
-from comest_bayes.bayes.likelihood import CompletenessModel, Covariates, compress_for, covariates_from_outcomes
+from comest_bayes.bayes.model import CompletenessModel
+from comest_bayes.bayes.outcomes import Covariates, compress_for, covariates_from_outcomes
 from comest_bayes.bayes.spec import load_spec
 from comest_bayes.pipeline.stages import ComputeOptions, ImageOptions, run_pipeline
 from comest_bayes.bayes.posterior import crossing_magnitudes

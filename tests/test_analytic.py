@@ -14,7 +14,8 @@ from comest_bayes.detect.sep_backend import detect_array, filter_kernel
 from comest_bayes.errors import InputError
 from comest_bayes.bayes.inference import fit_map, laplace
 from comest_bayes.inject.render import StampRenderer, make_truth, render_truth
-from comest_bayes.bayes.likelihood import CompletenessModel, Covariates, compress
+from comest_bayes.bayes.model import CompletenessModel
+from comest_bayes.bayes.outcomes import Covariates, compress
 from comest_bayes.recover.matching import match_one_to_one
 from comest_bayes.seeding import rng_for
 from comest_bayes.inject.sources import DEFAULT_MOFFAT_BETA as SOURCES_DEFAULT_BETA, make_psf

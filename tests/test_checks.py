@@ -7,7 +7,8 @@ import pytest
 
 from comest_bayes.bayes.checks import P_WARN, shape_check, shape_warning
 from comest_bayes.bayes.inference import fit_map, laplace
-from comest_bayes.bayes.likelihood import CompletenessModel, Covariates, compress
+from comest_bayes.bayes.model import CompletenessModel
+from comest_bayes.bayes.outcomes import Covariates, compress
 
 EDGES = np.arange(21.0, 26.01, 0.2)
 

@@ -14,7 +14,8 @@ import pytest
 from scipy import special, stats
 
 from comest_bayes.bayes.inference import fit_map, laplace
-from comest_bayes.bayes.likelihood import CompletenessModel, Covariates, uncompressed
+from comest_bayes.bayes.model import CompletenessModel
+from comest_bayes.bayes.outcomes import Covariates, uncompressed
 from comest_bayes.seeding import rng_for
 
 TRUTH = {"m50_0": 24.5, "w": 0.2, "A": 0.97, "floor": 0.01, "beta_depth": 1.0}

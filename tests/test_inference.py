@@ -1,7 +1,7 @@
 """Tests of comest_bayes.bayes.inference: MAP, Laplace approximation, emcee sampling and its diagnostics.
 
 Most tests use :class:`ToyModel`, a small self-contained JAX model that follows
-the model contract of ``comest_bayes.bayes.likelihood.CompletenessModel`` (names,
+the model contract of ``comest_bayes.bayes.model.CompletenessModel`` (names,
 ndim, initial, log_prob, value_and_grad, log_prob_batch, hessian, cell_loglik,
 transform, data.n, data.k), so the inference code is tested independently of
 the production likelihood; the last tests repeat the key checks with the real
@@ -380,7 +380,7 @@ def test_perfectly_separated_outcomes_give_a_finite_posterior_and_a_warning():
 def simulate_real(n_inj: int, seed: int, *, beta_depth: float = 1.0, m50: float = 24.5, w: float = 0.2,
                   A: float = 0.97, floor: float = 0.01, depth_sd: float = 0.3):
     """Outcomes of ``floor + (A - floor) sigmoid((m50 + beta_depth d - m) / w)``, m ~ U(22, 27), d ~ N(0, depth_sd)."""
-    from comest_bayes.bayes.likelihood import Covariates
+    from comest_bayes.bayes.outcomes import Covariates
 
     rng = np.random.default_rng(seed)
     m = rng.uniform(22.0, 27.0, n_inj)
@@ -397,7 +397,8 @@ def test_completeness_model_map_laplace_and_emcee():
     # sampled sd within 10% (sampling error ~2-3% at ESS >= 1000, plus mild non-Gaussianity).  A and floor
     # sit near their bounds (A ~ 0.97, floor ~ 0.01), where the posterior of their logits is skewed, so only
     # a 35% agreement is required there.
-    from comest_bayes.bayes.likelihood import CompletenessModel, compress_for
+    from comest_bayes.bayes.model import CompletenessModel
+    from comest_bayes.bayes.outcomes import compress_for
 
     cov, det = simulate_real(10000, seed=12)
     data = compress_for("logistic_depth", cov, det, dm=0.02, ddepth=0.05)

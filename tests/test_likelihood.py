@@ -14,7 +14,10 @@ from astropy.table import Table
 from scipy import integrate, optimize, special, stats
 
 from comest_bayes.errors import ConfigError, InputError
-from comest_bayes.bayes.likelihood import (TRACE_COUNT, CompletenessModel, Covariates, compress, compress_for, covariates_from_outcomes, link_logs, logistic_mixture_logs, mixture_logs, smooth_basis, uncompressed)
+from comest_bayes.bayes.model import TRACE_COUNT, CompletenessModel
+from comest_bayes.bayes.outcomes import Covariates, compress, compress_for, covariates_from_outcomes, uncompressed
+from comest_bayes.bayes.links import link_logs, logistic_mixture_logs, mixture_logs
+from comest_bayes.bayes.bases import smooth_basis
 from comest_bayes.bayes.spec import ModelSpec
 
 LINKS = ("logistic", "probit", "pritchet")
@@ -621,5 +624,5 @@ def test_smooth_bases_have_zero_field_average():
         np.testing.assert_allclose(ww @ b, 0.0, atol=1e-13)
         assert np.linalg.matrix_rank(b) == ncol  # no column is a combination of the others
     # the 1-D B-splines behind the tensor basis are a partition of unity
-    from comest_bayes.bayes.likelihood import _bspline_1d
+    from comest_bayes.bayes.bases import _bspline_1d
     np.testing.assert_allclose(_bspline_1d(np.linspace(-1, 1, 101), 6).sum(axis=1), 1.0, atol=1e-14)

@@ -5,7 +5,8 @@ import warnings
 import numpy as np
 import pytest
 
-from comest_bayes.bayes.likelihood import BinomialData, CompletenessModel, Covariates
+from comest_bayes.bayes.outcomes import BinomialData, Covariates
+from comest_bayes.bayes.model import CompletenessModel
 from comest_bayes.bayes.posterior import (CompletenessPosterior, ExtrapolationWarning, Footprint, FootprintHistogram, average_crossings, average_prob)
 
 SHAPE = (120, 160)

@@ -2,7 +2,7 @@
 
 The toy model of ``test_inference`` (a JAX model following the
 CompletenessModel contract) is reused; the last tests use the real
-``comest_bayes.bayes.likelihood.CompletenessModel``.  Every random draw has a fixed seed.
+``comest_bayes.bayes.model.CompletenessModel``.  Every random draw has a fixed seed.
 """
 
 from __future__ import annotations
@@ -178,7 +178,7 @@ def test_select_model_with_completeness_model(beta_depth, expected):
     # The production model and the shipped specs: 5000 injections, depth d ~ N(0, 0.3), compressed on a
     # 0.04 mag x 0.1 mag grid.  With beta_depth = 1 m50 moves by +-0.3 mag against w = 0.2 (~150 nats in
     # favour of the depth model); with beta_depth = 0 the slope is worth ~1 nat at most, inside the 4-nat margin.
-    from comest_bayes.bayes.likelihood import compress_for
+    from comest_bayes.bayes.outcomes import compress_for
     from test_inference import simulate_real
 
     cov, det = simulate_real(5000, seed=17, beta_depth=beta_depth)
@@ -200,7 +200,7 @@ def test_auto_selection_picks_a_smooth_term_for_variation_not_in_the_weight_map(
     # weight map does not know), while the depth covariate is uniform (noise map flat): the depth model cannot
     # explain the trend, a smooth term can.  5000 injections, w = 0.2: the trend moves m50 by +-0.4 mag, worth
     # hundreds of nats, far beyond the 4-nat margin of the rule.
-    from comest_bayes.bayes.likelihood import Covariates, compress_for
+    from comest_bayes.bayes.outcomes import Covariates, compress_for
 
     rng = np.random.default_rng(23)
     n = 5000
@@ -227,7 +227,8 @@ def test_laplace_loo_agrees_with_psis_loo_on_posterior_draws():
     # draws of the same model and data (5000 injections, logistic_depth): they differ by O(1/N) terms, measured
     # 0.1-0.3 nat in elpd; required within 1 nat, and their model differences within 1 nat too.
     from comest_bayes.bayes.inference import fit
-    from comest_bayes.bayes.likelihood import CompletenessModel, Covariates, compress_for
+    from comest_bayes.bayes.model import CompletenessModel
+    from comest_bayes.bayes.outcomes import Covariates, compress_for
     from comest_bayes.bayes.selection import loo_laplace
 
     rng = np.random.default_rng(31)
@@ -258,7 +259,7 @@ def test_a_level_no_candidate_reaches_does_not_make_the_simple_candidates_inadeq
     # to a 21-parameter spline sampled by emcee for 22 s).  The other quantities still decide.
     from comest_bayes.bayes.checks import P_WARN
     from comest_bayes.bayes.fit import targeted_quantities
-    from comest_bayes.bayes.likelihood import Covariates, compress_for
+    from comest_bayes.bayes.outcomes import Covariates, compress_for
     from comest_bayes.bayes.posterior import Footprint
 
     rng = np.random.default_rng(31)

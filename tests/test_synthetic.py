@@ -164,7 +164,7 @@ def test_draw_outcomes_columns_and_positions(small_scene):
     assert not small_scene.mask[iy, ix].any()
     np.testing.assert_array_equal(t["noise"], small_scene.noise[iy, ix])
     # the package reads the table as it is
-    from comest_bayes.bayes.likelihood import covariates_from_outcomes
+    from comest_bayes.bayes.outcomes import covariates_from_outcomes
 
     cov, det, meta = covariates_from_outcomes(t, image_shape=small_scene.shape)
     assert meta["N"] == 5000 and set(meta["available"]) >= {"m", "uv", "depth"}

@@ -38,7 +38,8 @@ from comest_bayes.config import RunConfig
 from comest_bayes.errors import InputError
 from comest_bayes.bayes.inference import fit, fit_map
 from comest_bayes.io.jsonio import dumps
-from comest_bayes.bayes.likelihood import (CompletenessModel, compress_for, covariate_warnings, covariates_from_outcomes)
+from comest_bayes.bayes.model import CompletenessModel
+from comest_bayes.bayes.outcomes import compress_for, covariate_warnings, covariates_from_outcomes
 from comest_bayes.bayes.spec import load_spec, resolve_candidates
 from comest_bayes.bayes.posterior import (CompletenessPosterior, Footprint, FootprintHistogram, average_crossings, average_prob, coarse_noise_map, footprint_sample)
 from comest_bayes.seeding import int_seed_for, rng_for

@@ -22,7 +22,7 @@ Everything works in the model's *unconstrained* parameter vector ``theta``
 The model
 ---------
 Any object with the attributes of the contract of
-:class:`comest_bayes.bayes.likelihood.CompletenessModel` (duck typing): ``names``
+:class:`comest_bayes.bayes.model.CompletenessModel` (duck typing): ``names``
 (list of ``D`` str), ``ndim`` (``D``), ``initial() -> (D,)``,
 ``log_prob(theta) -> float``, ``value_and_grad(theta) -> (float, (D,))``,
 ``log_prob_batch(thetas (W, D)) -> (W,)``, ``hessian(theta) -> (D, D)``,

@@ -41,7 +41,8 @@ import numpy as np
 from comest_bayes.errors import InputError
 from comest_bayes.io.jsonio import dumps
 from comest_bayes.ratios.binned import first_crossings
-from comest_bayes.bayes.likelihood import BinomialData, CompletenessModel, Covariates
+from comest_bayes.bayes.outcomes import BinomialData, Covariates
+from comest_bayes.bayes.model import CompletenessModel
 from comest_bayes.bayes.spec import ModelSpec, spec_from_mapping
 
 __all__ = ["CompletenessPosterior", "Footprint", "FootprintHistogram", "ExtrapolationWarning", "average_prob", "average_crossings", "coarse_noise_map", "footprint_sample",
@@ -277,7 +278,7 @@ class FootprintHistogram:
 def average_prob(model, thetas: np.ndarray, mags, footprint: Footprint) -> np.ndarray:
     """Footprint average of f per draw: shape (S, M), exact over the footprint's cells.
 
-    ``model`` is a :class:`~comest_bayes.bayes.likelihood.CompletenessModel` and
+    ``model`` is a :class:`~comest_bayes.bayes.model.CompletenessModel` and
     ``thetas`` its free parameters, shape (S, D) or (D,).
     """
     return model.average_prob(np.atleast_2d(np.asarray(thetas, float)), mags, footprint.depth, footprint.u,

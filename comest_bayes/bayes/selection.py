@@ -405,7 +405,7 @@ def compare_loo(loos: dict, *, margin: float = 4.0, margin_se: float = 2.0) -> t
 
 
 def _default_factory(spec, data, layout=None):
-    from comest_bayes.bayes.likelihood import CompletenessModel
+    from comest_bayes.bayes.model import CompletenessModel
 
     return CompletenessModel(spec, data, layout=layout)
 
@@ -588,7 +588,7 @@ m SE}_\Delta)` nats).  If no adequate candidate is
         Posterior draws used by PSIS-LOO with ``scoring="emcee"``.
     model_factory : callable, optional
         ``model_factory(spec, data) -> model`` (or ``(spec, data, layout)``);
-        default :class:`comest_bayes.bayes.likelihood.CompletenessModel` on the
+        default :class:`comest_bayes.bayes.model.CompletenessModel` on the
         candidates' shared layout.
     quantities : callable, optional
         See *Adequacy*.
@@ -628,7 +628,7 @@ m SE}_\Delta)` nats).  If no adequate candidate is
         raise InputError(f"select_model: candidate names must be unique, got {names}")
     if model_factory is None:
         from comest_bayes.errors import ConfigError
-        from comest_bayes.bayes.likelihood import shared_layout
+        from comest_bayes.bayes.model import shared_layout
 
         try:
             layout = shared_layout(candidates)

@@ -283,7 +283,7 @@ def _cells_cov(post):
     The cells cover every unmasked pixel (:class:`comest_bayes.bayes.posterior.Footprint`), so a weighted sum over them
     is the exact footprint average; a model with no spatial term needs one cell.
     """
-    from comest_bayes.bayes.likelihood import Covariates
+    from comest_bayes.bayes.outcomes import Covariates
 
     cells = post._cells()
     if not _spatial(post):
@@ -373,7 +373,7 @@ def _median_completeness(post, draws, inputs: LFInputs, *, chunk: int = 64):
         return fbar_med[None, :], fbar_med
     med = np.empty((inputs.n, grid.size))
     if not post.spec.uses_smooth:  # depth only: f on DEPTH_NODES depths, linear in between (as the joint mode)
-        from comest_bayes.bayes.likelihood import Covariates
+        from comest_bayes.bayes.outcomes import Covariates
 
         depth = post.covariates(np.zeros(inputs.n), inputs.x, inputs.y).depth
         nodes, idx, frac = _depth_nodes(depth)
@@ -458,7 +458,7 @@ class LFModel:
             def logprior(theta):
                 return lp_count(theta)
         else:
-            from comest_bayes.bayes.likelihood import _cell_logs
+            from comest_bayes.bayes.model import _cell_logs
 
             st = post.model._st
             # the sampled completeness parameters are the model's free ones (as in its posterior draws);
@@ -480,7 +480,7 @@ class LFModel:
             # depth-only models: f at the objects from DEPTH_NODES depth nodes, linear in between
             nodes = per_object and not post.spec.uses_smooth and bool(depth_nodes)
             if nodes:
-                from comest_bayes.bayes.likelihood import Covariates
+                from comest_bayes.bayes.outcomes import Covariates
 
                 obj_depth = post.covariates(np.zeros(inputs.n), inputs.x, inputs.y).depth
                 dnodes, idx, frac = _depth_nodes(obj_depth, depth_nodes)

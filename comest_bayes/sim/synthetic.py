@@ -17,7 +17,7 @@ with an optional masked chip gap and a few masked blobs.
 
 Depth covariate
 ---------------
-As in :func:`comest_bayes.bayes.likelihood.covariates_from_outcomes`, the depth of
+As in :func:`comest_bayes.bayes.outcomes.covariates_from_outcomes`, the depth of
 a pixel is
 
 .. math:: d = -2.5 \log_{10}(\sigma / \sigma_{\rm ref}),
