@@ -18,7 +18,7 @@ from comest_bayes.bayes.model import CompletenessModel
 from comest_bayes.bayes.outcomes import Covariates, compress
 from comest_bayes.recover.matching import match_one_to_one
 from comest_bayes.seeding import rng_for
-from comest_bayes.inject.sources import DEFAULT_MOFFAT_BETA as SOURCES_DEFAULT_BETA, make_psf
+from comest_bayes.inject.psfmodel import DEFAULT_MOFFAT_BETA as SOURCES_DEFAULT_BETA, make_psf
 
 DEFAULT = filter_kernel("default")
 

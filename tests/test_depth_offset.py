@@ -23,7 +23,7 @@ from comest_bayes.detect.sep_backend import detect_array, filter_kernel
 from comest_bayes.inject.render import make_truth, render_truth
 from comest_bayes.recover.matching import match_one_to_one
 from comest_bayes.seeding import rng_for
-from comest_bayes.inject.sources import make_psf
+from comest_bayes.inject.psfmodel import make_psf
 
 DEFAULT = filter_kernel("default")
 FWHM_PER_SIGMA = 2.0 * math.sqrt(2.0 * math.log(2.0))

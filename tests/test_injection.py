@@ -11,7 +11,9 @@ from astropy.wcs import WCS
 from comest_bayes.config import InjectionConfig
 from comest_bayes.errors import InputError
 from comest_bayes.inject.render import (FLAG_DRAW_ERROR, FLAG_MASKED, FLAG_OFF_IMAGE, TRUTH_COLUMNS, StampRenderer, local_jacobians, make_truth, psf_enclosed_radius_pix, render_truth)
-from comest_bayes.inject.sources import load_cosmos, make_psf, sersic_index_grid
+from comest_bayes.inject.cosmos import load_cosmos
+from comest_bayes.inject.psfmodel import make_psf
+from comest_bayes.inject.profiles import sersic_index_grid
 
 from conftest import tan_header
 from test_sources import synthetic_catalog

@@ -11,7 +11,11 @@ from scipy import integrate, stats
 
 from comest_bayes.config import InjectionConfig
 from comest_bayes.errors import InputError, InputFileError
-from comest_bayes.inject.sources import (DEV_K_STEP, TRUNC_HLR, bulge_disk_components, buldisk_k, buldisk_radius_per_hlr, devaucouleurs_k_table, draw_magnitudes, draw_parameters, exponential_k, fit_count_slope, fit_observed_population, kspace_quadratic_forms, load_cosmos, make_psf, psf_half_light_radius_pix, sersic_enclosed_radius, sersic_index_grid, sersic_truncation, shear_matrices, source_profile)
+from comest_bayes.inject.kspace import DEV_K_STEP, buldisk_k, buldisk_radius_per_hlr, devaucouleurs_k_table, exponential_k, kspace_quadratic_forms, shear_matrices
+from comest_bayes.inject.profiles import TRUNC_HLR, bulge_disk_components, sersic_enclosed_radius, sersic_index_grid, sersic_truncation, source_profile
+from comest_bayes.inject.population import draw_magnitudes, draw_parameters, fit_count_slope, fit_observed_population
+from comest_bayes.inject.cosmos import load_cosmos
+from comest_bayes.inject.psfmodel import make_psf, psf_half_light_radius_pix
 
 
 def enclosed_fraction(profile, radius):

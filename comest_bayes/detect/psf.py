@@ -829,10 +829,10 @@ def injection_psf(injection, seeing: dict, *, pixel_scale: float | None = None) 
     -----
     The Moffat beta is ``injection.moffat_beta`` when set (> 0); else the
     median beta fitted on the image's stars; else
-    :data:`~comest_bayes.inject.sources.DEFAULT_MOFFAT_BETA` (3), with the reason the
+    :data:`~comest_bayes.inject.psfmodel.DEFAULT_MOFFAT_BETA` (3), with the reason the
     stars gave none.  A FITS PSF image ignores both.
     """
-    from comest_bayes.inject.sources import DEFAULT_MOFFAT_BETA
+    from comest_bayes.inject.psfmodel import DEFAULT_MOFFAT_BETA
 
     model = injection.psf.strip()
     analytic = model.lower() in ("moffat", "gaussian", "kolmogorov")
@@ -873,7 +873,7 @@ def injection_psf(injection, seeing: dict, *, pixel_scale: float | None = None) 
         out["fwhm_source"] += " (used for the matching radius and separations only)"
     if pixel_scale is not None:
         from comest_bayes.inject.render import point_stamp_size
-        from comest_bayes.inject.sources import make_psf
+        from comest_bayes.inject.psfmodel import make_psf
 
         profile = make_psf(injection, fwhm, pixel_scale, beta=out["beta"], pixel_integrated=out["pixel_integrated"])
         out["stamp"] = point_stamp_size(profile, pixel_scale)
@@ -1014,7 +1014,7 @@ def empirical_psf(data_sub, catalog, star_rows, *, half_size: int, mask=None, mi
     its flux within the stamp, and the stamps are combined pixel by pixel
     with a 3-sigma clipped mean.  The result is the effective PSF sampled at
     pixel centres, for ``injection.psf = <FITS file>`` (write it with
-    :func:`astropy.io.fits.writeto`; :func:`comest_bayes.inject.sources.make_psf`
+    :func:`astropy.io.fits.writeto`; :func:`comest_bayes.inject.psfmodel.make_psf`
     reads it at the image's pixel scale).  It assumes the PSF does not vary
     over the image and is sampled well enough for the sub-pixel shift (FWHM
     above about 2 px).

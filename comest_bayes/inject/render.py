@@ -4,7 +4,7 @@ Two pure steps, each a function of arrays and an explicit random state:
 
 * :func:`make_truth` draws *what* goes *where*: the number of injections,
   their positions (:mod:`comest_bayes.inject.placement`) and their parameters
-  (:mod:`comest_bayes.inject.sources`), as an :class:`astropy.table.Table`;
+  (:mod:`comest_bayes.inject.population`), as an :class:`astropy.table.Table`;
 * :func:`render_truth` draws those sources with GalSim into a copy of a base
   image (the source-free or bright-and-big image) and returns it with the
   truth table updated by per-object flags.
@@ -23,7 +23,7 @@ mag              mag    injected magnitude
 flux             image  total flux, ``10**(-0.4 * (mag - zeropoint))``
 hlr_arcsec       arcsec circularised half-light radius sqrt(a b) (NaN: point, cosmos)
 q                -      axis ratio b/a (NaN: point, cosmos)
-pa_deg           deg    position angle (see :mod:`comest_bayes.inject.sources`; NaN: point)
+pa_deg           deg    position angle (see ``docs/sources.md``; NaN: point)
 bulge_fraction   -      bulge flux fraction (buldisk; else NaN)
 sersic_n         -      Sersic index (sersic, observed; else NaN)
 cosmos_index     -      row of the COSMOS catalog (cosmos; else -1)
@@ -62,16 +62,16 @@ of the sub-pixel offset, and inverse-transformed.  For bulge+disk galaxies
 and a Moffat PSF this is ~4 times faster than ``drawImage`` (whose Moffat
 k-space evaluation dominates) and agrees with it to < 1e-3 of the peak
 (tested).  ``'no_pixel'`` is right because the PSF is the *effective* PSF (see
-:mod:`comest_bayes.inject.sources`).  The source profile is mapped to pixels with
+``docs/sources.md``).  The source profile is mapped to pixels with
 the local Jacobian of the WCS at its position (or the pixel scale); the PSF
 is defined in pixels (its FWHM was measured in pixels).
 
 Batched drawing: ``point`` and ``buldisk`` stamps
-(:data:`comest_bayes.inject.sources.BATCHED_KINDS`) skip GalSim per source.  They
+(:data:`comest_bayes.inject.kspace.BATCHED_KINDS`) skip GalSim per source.  They
 are grouped by FFT size, and each group is drawn in chunks with NumPy on the
 same ``k`` grid as above: the source's transform (analytic exponential disk,
 de Vaucouleurs bulge interpolated in a table built once from GalSim; see
-:mod:`comest_bayes.inject.sources`), times the PSF's, times the shift phase, folded
+:mod:`comest_bayes.inject.kspace`), times the PSF's, times the shift phase, folded
 as GalSim folds, and one batched inverse real FFT per chunk
 (:meth:`StampRenderer.batch_grid`, :meth:`StampRenderer.draw_batch`).  The
 stamps agree with the per-source path to ~1e-6 of their peak (tested) and
@@ -101,7 +101,12 @@ from astropy.table import Table
 from comest_bayes.config import KINDS, InjectionConfig
 from comest_bayes.errors import ComestError, InputError
 from comest_bayes.inject.placement import PUBLISHED_DENSITY, draw_count, pixel_index, place_sources
-from comest_bayes.inject.sources import (FWHM_PER_SIGMA, CosmosSample, buldisk_k, buldisk_radius_per_hlr, devaucouleurs_k_table, draw_parameters, fit_observed_population, kspace_quadratic_forms, make_psf, psf_half_light_radius_pix, source_profile)
+from comest_bayes.constants import FWHM_PER_SIGMA
+from comest_bayes.inject.cosmos import CosmosSample
+from comest_bayes.inject.kspace import buldisk_k, buldisk_radius_per_hlr, devaucouleurs_k_table, kspace_quadratic_forms
+from comest_bayes.inject.population import draw_parameters, fit_observed_population
+from comest_bayes.inject.psfmodel import make_psf, psf_half_light_radius_pix
+from comest_bayes.inject.profiles import source_profile
 
 __all__ = ["TRUTH_COLUMNS", "FLAG_MASKED", "FLAG_OFF_IMAGE", "FLAG_DRAW_ERROR", "MAX_FFT_SIZE",
            "make_truth", "render_truth", "local_jacobians", "psf_enclosed_radius_pix", "point_stamp_size", "StampRenderer",
@@ -251,7 +256,7 @@ def make_truth(kind: str, *, shape, mask=None, pixel_scale: float, fwhm_pix: flo
     :data:`~comest_bayes.inject.placement.PUBLISHED_DENSITY`), the positions
     (:func:`comest_bayes.inject.placement.place_sources` with ``config.placement`` and
     ``config.min_sep`` converted to pixels), then the magnitudes and shapes
-    (:func:`comest_bayes.inject.sources.draw_parameters`).
+    (:func:`comest_bayes.inject.population.draw_parameters`).
 
     Parameters
     ----------
@@ -267,7 +272,7 @@ def make_truth(kind: str, *, shape, mask=None, pixel_scale: float, fwhm_pix: flo
         Seeing FWHM in pixels (``observed``: PSF size to deconvolve; may be
         None when ``psf`` is given).
     config : InjectionConfig
-        Density, placement, ranges (see :mod:`comest_bayes.inject.sources`).
+        Density, placement, ranges (see ``docs/sources.md``).
     mag_range : (float, float), optional
         Bright and faint limits; default ``config.mag_range`` (must then be set).
     rng : numpy.random.Generator
@@ -279,7 +284,7 @@ def make_truth(kind: str, *, shape, mask=None, pixel_scale: float, fwhm_pix: flo
     observed_catalog : astropy.table.Table, optional
         The image's detection catalog (required for ``observed``).
     cosmos : CosmosSample, optional
-        Required for ``cosmos`` (:func:`comest_bayes.inject.sources.load_cosmos`).
+        Required for ``cosmos`` (:func:`comest_bayes.inject.cosmos.load_cosmos`).
     psf : galsim.GSObject, optional
         The effective PSF in arcsec (``observed``: its half-light radius is
         deconvolved); default ``make_psf(config, fwhm_pix, pixel_scale)``.
@@ -453,7 +458,7 @@ def point_stamp_size(psf, pixel_scale: float, flux_fraction: float = 0.995) -> d
     Parameters
     ----------
     psf : galsim.GSObject
-        Unit-flux effective PSF in arcsec (:func:`comest_bayes.inject.sources.make_psf`).
+        Unit-flux effective PSF in arcsec (:func:`comest_bayes.inject.psfmodel.make_psf`).
     pixel_scale : float
         Arcsec per pixel.
     flux_fraction : float
@@ -722,7 +727,7 @@ def render_truth(base_image, truth: Table, *, psf, config: InjectionConfig, pixe
     truth : astropy.table.Table
         From :func:`make_truth` (columns :data:`TRUTH_COLUMNS`).
     psf : galsim.GSObject
-        Unit-flux effective PSF in arcsec (:func:`comest_bayes.inject.sources.make_psf`).
+        Unit-flux effective PSF in arcsec (:func:`comest_bayes.inject.psfmodel.make_psf`).
     config : InjectionConfig
         ``photon_noise``.
     pixel_scale : float

@@ -252,7 +252,7 @@ def stamp_half_size(injection, fwhm_pix: float, pixel_scale: float) -> int:
     import galsim
 
     from comest_bayes.inject.render import psf_enclosed_radius_pix
-    from comest_bayes.inject.sources import make_psf
+    from comest_bayes.inject.psfmodel import make_psf
 
     psf = make_psf(injection, fwhm_pix, pixel_scale)
     radius, _ = psf_enclosed_radius_pix(galsim.PixelScale(pixel_scale).toImage(psf), STAMP_FLUX_FRACTION)

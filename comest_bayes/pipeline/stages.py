@@ -246,7 +246,7 @@ def _run_pipeline(options: ImageOptions, config: RunConfig, out_dir, *, log, com
 
         find_sextractor()
     if "cosmos" in config.injection.kinds:
-        from comest_bayes.inject.sources import load_cosmos
+        from comest_bayes.inject.cosmos import load_cosmos
 
         load_cosmos(config.injection)  # a missing or broken catalog directory is an error now, not later
     if config.injection.psf not in ("moffat", "gaussian", "kolmogorov") and not Path(config.injection.psf).is_file():
@@ -419,7 +419,7 @@ def _headers(image: ImageData) -> list:
 
 def _injection_psf_profile(config: RunConfig, image: ImageData, psf_choice: dict | None):
     """The GalSim profile (arcsec) the injections use, as decided by :func:`comest_bayes.detect.psf.injection_psf`."""
-    from comest_bayes.inject.sources import make_psf
+    from comest_bayes.inject.psfmodel import make_psf
 
     psf_choice = psf_choice or {}
     return make_psf(config.injection, image.fwhm, image.pixel_scale, beta=psf_choice.get("beta"),

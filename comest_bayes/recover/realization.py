@@ -192,14 +192,14 @@ def _table_cached(key: tuple) -> Table:
 @functools.lru_cache(maxsize=2)
 def _psf(injection: InjectionConfig, fwhm: float, pixel_scale: float, beta: float = 0.0,
          pixel_integrated: bool = False):
-    from comest_bayes.inject.sources import make_psf
+    from comest_bayes.inject.psfmodel import make_psf
 
     return make_psf(injection, fwhm, pixel_scale, beta=beta if beta > 0 else None, pixel_integrated=pixel_integrated)
 
 
 @functools.lru_cache(maxsize=1)
 def _cosmos(injection: InjectionConfig):
-    from comest_bayes.inject.sources import load_cosmos
+    from comest_bayes.inject.cosmos import load_cosmos
 
     return load_cosmos(injection)
 

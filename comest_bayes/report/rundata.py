@@ -269,7 +269,8 @@ def simulated_image(run: RunData, kind: str, index: int = 0, *, prefer_saved: bo
     """
     from comest_bayes.inject.render import render_truth
     from comest_bayes.seeding import int_seed_for
-    from comest_bayes.inject.sources import load_cosmos, make_psf
+    from comest_bayes.inject.cosmos import load_cosmos
+    from comest_bayes.inject.psfmodel import make_psf
 
     saved = run.file(f"sims/{kind}/image_r{index:05d}.fits")
     if prefer_saved and saved.is_file():

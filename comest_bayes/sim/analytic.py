@@ -11,7 +11,7 @@ derivation, its assumptions and the measured size of each correction are in
   how :mod:`comest_bayes.inject.render` draws the effective PSF), or integrated
   over the pixel (``pixel_integrated=True``).
 * ``psf="moffat"`` replaces the Gaussian with the circular Moffat profile a
-  run injects (:func:`comest_bayes.inject.sources.make_psf`:
+  run injects (:func:`comest_bayes.inject.psfmodel.make_psf`:
   ``galsim.Moffat(beta=beta, fwhm=FWHM)``):
   ``P(r) = (beta - 1) / (pi alpha^2) (1 + (r / alpha)^2)^(-beta)`` with
   ``alpha = FWHM / (2 sqrt(2^(1/beta) - 1))``, unit flux, untruncated,
@@ -100,7 +100,7 @@ _FWHM_TO_SIGMA = 1.0 / FWHM_PER_SIGMA
 #: PSF profiles the prediction knows: ``psf=`` of the public functions.
 PSF_SHAPES = ("gaussian", "moffat")
 #: Moffat beta used when none is given: the beta a run injects when the image's stars give none
-#: (:data:`comest_bayes.inject.sources.DEFAULT_MOFFAT_BETA`; a run records the beta it used in
+#: (:data:`comest_bayes.inject.psfmodel.DEFAULT_MOFFAT_BETA`; a run records the beta it used in
 #: ``run.json``, ``psf.beta``).
 DEFAULT_MOFFAT_BETA = 3.0
 #: A default Moffat stamp's inscribed circle holds at least this fraction of the flux.
@@ -286,7 +286,7 @@ def psf_image(fwhm_pix: float, dx: float = 0.0, dy: float = 0.0, *, half_size: i
         ``"gaussian"``: ``exp(-r^2 / (2 s^2)) / (2 pi s^2)``,
         ``s = FWHM / (2 sqrt(2 ln 2))``.  ``"moffat"``: the profile of
         ``galsim.Moffat(beta=moffat_beta, fwhm=fwhm_pix)`` as
-        :func:`comest_bayes.inject.sources.make_psf` builds it for a default run,
+        :func:`comest_bayes.inject.psfmodel.make_psf` builds it for a default run,
         ``(beta - 1) / (pi alpha^2) (1 + (r / alpha)^2)^(-beta)`` with
         ``alpha`` = :func:`moffat_alpha`: unit flux *of the untruncated
         profile* (GalSim's ``trunc=0``; the stamp is not renormalised, so it
