@@ -144,7 +144,7 @@ def binned_shortcut(obs, post, lo, hi, width=0.25, area=AREA):
 
 
 def replicate(r, ninj, min_ess, area=AREA):
-    from comest_bayes.lf.fit import build_inputs, fit_counts
+    from comest_bayes.lf.model import build_inputs, fit_counts
     from comest_bayes.seeding import int_seed_for, rng_for
     from comest_bayes.recover.transfer import measure_transfer
 

@@ -27,7 +27,6 @@ traceback.
 from __future__ import annotations
 
 import argparse
-import json
 import os
 import sys
 import time
@@ -37,8 +36,33 @@ from pathlib import Path
 from comest_bayes import __version__
 from comest_bayes.pipeline import runtime
 from comest_bayes.errors import ComestError
+from comest_bayes.lf import MODES, SAMPLERS
+from comest_bayes.io.jsonio import dumps
 
 __all__ = ["main", "build_parser"]
+
+#: Options of ``comest-bayes lf DIR ...`` (argparse-style: flag -> keyword of
+#: :func:`comest_bayes.lf.fit.run_lf`).
+LF_OPTIONS = {
+    "--kind": {"dest": "kind", "default": "point", "help": "source kind whose completeness is used (a kind of "
+                                                            "the run, e.g. point or buldisk)"},
+    "--model": {"dest": "model", "default": "powerlaw", "help": "count model: powerlaw, schechter, "
+                                                                "double_powerlaw or the path of a TOML spec"},
+    "--mag-range": {"dest": "mag_range", "nargs": 2, "type": float, "default": None, "metavar": ("LO", "HI"),
+                    "help": "measured-magnitude range fitted (default: the run's injected range, faint end "
+                            "cut where the completeness falls below 10%%)"},
+    "--mode": {"dest": "mode", "choices": list(MODES), "default": "joint",
+               "help": "completeness uncertainty: joint (sampled with the counts), marginal (pooled over "
+                       "completeness draws) or fixed (posterior median; too-narrow intervals)"},
+    "--catalog": {"dest": "catalog", "default": None, "help": "FITS table of sources (default: the run's "
+                                                              "detection.fits)"},
+    "--mag-column": {"dest": "mag_column", "default": "mag_auto", "help": "magnitude column of the catalog"},
+    "--seed": {"dest": "seed", "type": int, "default": 0, "help": "root seed of the sampler"},
+    "--sampler": {"dest": "sampler", "choices": list(SAMPLERS), "default": "auto",
+                  "help": "posterior sampler: auto (importance sampling of the Laplace approximation, emcee when "
+                          "its k-hat or ESS fails), or emcee (the reference; slow in joint mode)"},
+    "--name": {"dest": "name", "default": None, "help": "output name under DIR/lf/ (default kind_model_mode)"},
+}
 
 
 def _add_config_options(p: argparse.ArgumentParser) -> None:
@@ -169,8 +193,6 @@ def build_parser() -> argparse.ArgumentParser:
     rep.add_argument("--size", type=int, default=400, help="side of the image cutouts in pixels (default 400)")
     _add_output_options(rep.add_argument_group("output"))
 
-    from comest_bayes.lf.fit import CLI_OPTIONS
-
     lf = sub.add_parser("lf", help="fit number counts through the measured completeness and photometric transfer",
                         description="Fit a count model (power law, Schechter, double power law, or a TOML spec) to the "
                                     "run's detection catalog or a user catalog with an extended Poisson likelihood, "
@@ -179,7 +201,7 @@ def build_parser() -> argparse.ArgumentParser:
                                     "posterior draws, or held fixed (for comparison). The run's report is rewritten "
                                     "with the LF section unless --no-report.")
     lf.add_argument("dir", help="run directory with a completeness posterior (comest-bayes run or demo)")
-    for flag, kw in CLI_OPTIONS.items():
+    for flag, kw in LF_OPTIONS.items():
         lf.add_argument(flag, **kw)
     lf.add_argument("--no-report", action="store_true", help="do not rewrite report.html")
     _add_output_options(lf.add_argument_group("output"))
@@ -369,14 +391,14 @@ def _cmd_info(args, log) -> int:
     from comest_bayes.io.info import format_info, run_info
 
     info = run_info(args.dir)
-    print(json.dumps(info, indent=2) if args.json else format_info(info))
+    print(dumps(info, indent=2) if args.json else format_info(info))
     return 0
 
 
 def _cmd_lf(args, log) -> int:
-    from comest_bayes.lf.fit import CLI_OPTIONS, run_lf
+    from comest_bayes.lf.fit import run_lf
 
-    kwargs = {kw["dest"]: getattr(args, kw["dest"]) for kw in CLI_OPTIONS.values()}
+    kwargs = {kw["dest"]: getattr(args, kw["dest"]) for kw in LF_OPTIONS.values()}
     if kwargs.get("mag_range") is not None:
         kwargs["mag_range"] = tuple(kwargs["mag_range"])
     t0 = time.perf_counter()

@@ -10,7 +10,9 @@ from astropy.table import Table
 
 from comest_bayes.lf.counts import CountModel
 from comest_bayes.errors import ConfigError, InputError, InputFileError
-from comest_bayes.lf.fit import LFModel, LFResult, LFWarning, build_inputs, effective_area, fit_counts, run_lf
+from comest_bayes.lf.model import LFModel, LFWarning, build_inputs, effective_area, fit_counts
+from comest_bayes.lf.result import LFResult
+from comest_bayes.lf.fit import run_lf
 from comest_bayes.bayes.spec import load_spec
 from comest_bayes.bayes.posterior import CompletenessPosterior
 from comest_bayes.recover.transfer import PhotometricTransfer, measure_transfer
@@ -142,7 +144,7 @@ def test_joint_model_uses_the_completeness_models_own_link_at_its_free_parameter
     # The joint mode samples the completeness posterior's free parameters; the link needs the full layout
     # (pinned slots such as w_depth, beta_size).  Fed the free vector, JAX clamped the out-of-range slots to the
     # last free value (here w_depth = beta_depth = 1): the completeness, and the counts, were wrong.
-    from comest_bayes.lf.fit import completeness_arrays
+    from comest_bayes.lf.model import completeness_arrays
 
     rng = np.random.default_rng(41)
     post = _depth_posterior()

@@ -321,7 +321,7 @@ class RunDirectory:
               "started": _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds")}
         tmp = self.path / f"{TMP_PREFIX}lock-{os.getpid()}-{uuid.uuid4().hex[:8]}"
         try:
-            tmp.write_text(json.dumps(me) + "\n")
+            tmp.write_text(dumps(me) + "\n")
         except OSError as exc:
             raise OutputWriteError(f"could not write {str(lock)!r}: {os_reason(exc)}.") from None
         try:
@@ -339,7 +339,7 @@ class RunDirectory:
                         pass
                     else:
                         with os.fdopen(fd, "w") as fh:
-                            fh.write(json.dumps(me) + "\n")
+                            fh.write(dumps(me) + "\n")
                         self._locked = True
                         return
                 holder = _read_lock(lock)

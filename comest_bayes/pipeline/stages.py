@@ -27,6 +27,7 @@ from comest_bayes.errors import ComestError, ConfigError, DetectionOverflowError
 from comest_bayes.io.image import ImageData, load_image
 from comest_bayes.io.rundir import RunDirectory, file_checksum
 from comest_bayes.seeding import seed_sequence
+from comest_bayes.io.jsonio import dumps
 
 __all__ = ["ImageOptions", "ComputeOptions", "RunResult", "run_pipeline", "output_header"]
 
@@ -771,7 +772,7 @@ def _adaptive_injection(run: RunDirectory, ctx, config: RunConfig, compute: "Com
                 check_recorded(MagnitudeDesign.from_dict(json.loads(path.read_text())), design, k)
             else:
                 with atomic_path(path) as tmp:
-                    tmp.write_text(json.dumps(design.to_dict()))
+                    tmp.write_text(dumps(design.to_dict()))
             span[kind] = (st["n"], st["n"] + size)
             for i in range(*span[kind]):
                 if not realization_file(sims, kind, i).exists():

@@ -44,6 +44,7 @@ import numpy as np
 from scipy.special import ndtr
 
 from comest_bayes.errors import InputError
+from comest_bayes.io.jsonio import dumps
 
 __all__ = ["PhotometricTransfer", "measure_transfer", "transfer_from_outcomes"]
 
@@ -144,12 +145,11 @@ class PhotometricTransfer:
     # ---- persistence ---------------------------------------------------------------
     def to_arrays(self, prefix: str = "transfer_") -> dict:
         """Arrays for ``np.savez`` (keys prefixed), meta as JSON text."""
-        import json
 
         return {f"{prefix}nodes": self.nodes, f"{prefix}dm": self.dm, f"{prefix}density": self.density,
                 f"{prefix}cdf": self.cdf, f"{prefix}finite_fraction": self.finite_fraction,
                 f"{prefix}n_eff": self.n_eff, f"{prefix}bandwidth": self.bandwidth,
-                f"{prefix}meta": np.array(json.dumps(self.meta))}
+                f"{prefix}meta": np.array(dumps(self.meta))}
 
     @classmethod
     def from_arrays(cls, z, prefix: str = "transfer_") -> "PhotometricTransfer":

@@ -584,7 +584,7 @@ def lf_figures(lf_dir) -> list:
     list of (title, matplotlib.figure.Figure)
         Two per fit (counts, corner), in name order; empty when there is no fit.
     """
-    from comest_bayes.lf.fit import LFResult
+    from comest_bayes.lf.result import LFResult
     from comest_bayes.report.plots.lf import corner_figure, counts_figure
 
     root = Path(lf_dir)

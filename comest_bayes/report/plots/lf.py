@@ -27,7 +27,7 @@ def counts_figure(result, *, truth_phi=None) -> Figure:
 
     Parameters
     ----------
-    result : comest_bayes.lf.fit.LFResult
+    result : comest_bayes.lf.result.LFResult
     truth_phi : callable, optional
         ``m -> phi`` (deg^-2 mag^-1) of a known truth, drawn dashed (mocks).
 
@@ -88,7 +88,7 @@ def corner_figure(result, *, truths=None, bins: int = 30) -> Figure:
 
     Parameters
     ----------
-    result : comest_bayes.lf.fit.LFResult
+    result : comest_bayes.lf.result.LFResult
     truths : sequence of float, optional
         True values (mocks), drawn as lines.
     bins : int
