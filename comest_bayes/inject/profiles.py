@@ -16,7 +16,7 @@ from comest_bayes.config import KINDS
 from comest_bayes.errors import InputError
 from comest_bayes.inject.cosmos import CosmosSample
 
-__all__ = ['TRUNC_HLR', 'TRUNC_TAIL', 'SERSIC_N_STEP', 'MAX_SERSIC_INDICES', 'SourceProfile', 'sersic_index_grid', 'sersic_truncation', 'sersic_enclosed_radius', 'bulge_disk_components', 'source_profile']
+__all__ = ["sersic_b", 'TRUNC_HLR', 'TRUNC_TAIL', 'SERSIC_N_STEP', 'MAX_SERSIC_INDICES', 'SourceProfile', 'sersic_index_grid', 'sersic_truncation', 'sersic_enclosed_radius', 'bulge_disk_components', 'source_profile']
 
 #: Sersic profiles are truncated at this many half-light radii (see the module docstring).
 TRUNC_HLR = 8.0
@@ -57,7 +57,7 @@ def sersic_index_grid(n_range) -> np.ndarray:
     return np.round(grid, 6)
 
 
-def _b_sersic(n: float) -> float:
+def sersic_b(n: float) -> float:
     """b_n with I ~ exp(-b_n (r/r_e)^(1/n)) and r_e the half-light radius: P(2n, b_n) = 1/2."""
     return float(gammaincinv(2.0 * n, 0.5))
 
@@ -68,7 +68,7 @@ def sersic_truncation(n: float) -> float:
     :data:`TRUNC_HLR` when the untruncated profile has more than
     :data:`TRUNC_TAIL` of its light beyond that radius, else 0.
     """
-    tail = 1.0 - gammainc(2.0 * n, _b_sersic(n) * TRUNC_HLR ** (1.0 / n))
+    tail = 1.0 - gammainc(2.0 * n, sersic_b(n) * TRUNC_HLR ** (1.0 / n))
     return TRUNC_HLR if tail > TRUNC_TAIL else 0.0
 
 
@@ -114,7 +114,7 @@ def _growth_curve(n: float) -> tuple[np.ndarray, np.ndarray]:
     """
     t = _trunc_factor(n)
     if t == 0.0:
-        r0, total = 1.0 / _b_sersic(n) ** n, 1.0
+        r0, total = 1.0 / sersic_b(n) ** n, 1.0
     else:
         r0 = _unit_sersic(n).scale_radius
         total = gammainc(2.0 * n, (t / r0) ** (1.0 / n))

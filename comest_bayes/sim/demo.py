@@ -1,192 +1,14 @@
-"""Built-in demo data: a synthetic but realistic observed r-band tile.
+"""Built-in demo data: a synthetic but realistic observed r-band tile, drawn with GalSim.
 
-``comest-bayes demo`` runs the whole pipeline on an image made here, so that
-a new user sees every stage work without bringing data.  The tile is drawn
-with GalSim and carries everything a real survey tile has that the pipeline
-must cope with: a rotated TAN WCS, a sky level, noise that varies across the
-field (with a matching inverse-variance weight map), a chip gap, realistic
-galaxy and star populations, saturated stars with bleed trails, and the
-usual header keywords.  Every rendered source is recorded in a truth table.
-
-Everything is a pure function of the parameters and the root ``seed``: the
-same call gives a bit-identical tile.  Only :func:`write_demo_tile` does I/O.
-
-Parameters of :func:`make_demo_tile`
-------------------------------------
-seed : int, default 0
-    Root seed.  Independent streams ``("demo", "galaxies")``,
-    ``("demo", "stars")``, ``("demo", "bright_stars")`` and
-    ``("demo", "noise")`` come from :func:`comest_bayes.seeding.rng_for`,
-    so e.g. changing the star density does not move any galaxy.
-size : int, default 3000
-    The tile is ``size x size`` pixels (3000 px = 13 arcmin at 0.26"/px).
-pixel_scale : float, default 0.26
-    Arcsec per pixel (DECam-like).
-zeropoint : float, default 30.0
-    AB magnitude of a source with a total flux of one image unit (ADU):
-    ``m = zeropoint - 2.5 log10(flux)``.  Written as ``MAGZERO``.
-fwhm_arcsec : float, default 0.9
-    Seeing FWHM of the Moffat PSF, arcsec (``SEEING``).
-moffat_beta : float, default 3.0
-    Moffat index of the PSF.
-sky_level : float, default 300.0
-    Sky in ADU per pixel (~20.9 r mag/arcsec^2 for the defaults, a dark sky).
-gain : float, default 15.0
-    Electrons per ADU (``GAIN``), at the deepest part of the tile.
-read_noise : float, default 5.0
-    Read noise in electrons.
-saturation : float, default 30000.0
-    Saturation level in ADU, sky included (``SATURATE``).
-exptime : float, default 900.0
-    Nominal exposure time in seconds (``EXPTIME``); informational only.
-depth_gradient : float, default 1.6
-    Ratio of the sky-noise sigma at the right edge (x = size-1) to that at
-    the left edge (x = 0); the sigma grows linearly in x between them.
-shallow_quadrant : float, default 1.3
-    Extra factor on the noise sigma in the upper-left quadrant
-    (``x < size/2`` and ``y >= size/2``), a step in depth as left by a
-    missing exposure in a coadd.  1 disables it.
-gap_width : int, default 40
-    Width in pixels of a vertical chip gap starting at ``x = round(0.62 size)``:
-    image 0, weight 0, mask bit 1.  0 disables it.
-n_saturated_stars : int, default 4
-    Bright stars (r = 12-15) placed on purpose; they saturate.
-galaxy_density, star_density : float, default 1.0
-    Multipliers of the galaxy and star number counts below (e.g. a high
-    ``star_density`` gives tests many isolated stars; 0 removes a population).
-mag_bright : float, default 17.0
-    Brightest galaxy magnitude drawn.
-faint_margin : float, default 2.0
-    Sources are drawn down to ``mag_faint = depth5_deep + faint_margin``,
-    i.e. 2 mag below the 5-sigma point-source limit of the deepest region,
-    so the undetected faint population that sets the confusion background is
-    there too.
-ra_center, dec_center : float, default 150.1, 2.2
-    Tangent point (deg) at the tile centre (the COSMOS field).
-rotation_deg : float, default 10.0
-    Rotation of the pixel grid: north points along ``(sin r, cos r)`` in
-    pixel coordinates (east to the left of north), so code that assumes
-    north = +y is exercised.
-keep_model : bool, default False
-    Also return the noise-free model (sky + sources) as ``DemoTile.model``.
-galaxy_counts, star_counts : (n_ref, slope, m_ref) or None, default None
-    Replace the galaxy (or star) number counts below by one power law
-    ``dN/dm = n_ref 10**(slope (m - m_ref))`` deg^-2 mag^-1 (before the
-    ``galaxy_density`` / ``star_density`` multiplier), over ``mag_bright``
-    (galaxies) or r = 16 (stars) to ``mag_faint``: mock populations of known
-    counts, e.g. for :mod:`comest_bayes.lf.fit`.  None (the default) keeps the
-    populations described below; the ``n_saturated_stars`` are added either way.
-
-With the defaults the tile holds ~17500 galaxies (r = 17 to 26.5) and ~215
-stars (4 of them saturated); making it takes ~11 s on one core (peak memory
-~0.6 GB).
-
-Noise model
------------
-The sky noise sigma at the deepest point is
-``sigma0 = sqrt(sky_level / gain + (read_noise / gain)**2)`` ADU; at pixel
-``(x, y)`` it is ``sigma0 * f(x, y)`` with ``f`` from :func:`noise_factor_map`.
-A pixel with factor ``f`` behaves as if it had ``1/f**2`` of the exposure of
-the deepest one, at the same zero point, so source photon noise there has
-variance ``S f**2 / gain`` for a noise-free source signal ``S`` (ADU).  The
-noise added is Gaussian with variance ``(sigma0 f)**2 + max(S, 0) f**2 / gain``
-(the Gaussian limit of Poisson noise; the sky counts are >> 1 per pixel).
-The weight map is exactly ``1 / (sigma0 f)**2`` -- like a survey weight map
-it holds the background variance only -- and 0 in the chip gap.
-
-The 5-sigma point-source depth is ``zeropoint - 2.5 log10(5 sigma sqrt(Neff))``
-with ``Neff = 1 / sum(p**2)`` the noise-equivalent area of the pixelised PSF
-``p`` (optimal PSF-fitting photometry).  For the defaults sigma0 = 4.48 ADU,
-Neff = 46.7 px and the depth is r = 24.54 in the deepest region, 24.03 at the
-right edge and 23.97 where the shallow quadrant meets the centre line.
-
-Galaxy number counts
---------------------
-Differential counts in the r band, per deg^2 per mag:
-
-* ``r >= 20``: the LSST Science Book (2009, eq. 3.7) fit to CFHTLS-Deep
-  i-band counts, ``N(<i) = 46 x 10**(0.31 (i - 25))`` arcmin^-2 (fitted over
-  20.5 < i < 25.5), moved to r with a typical galaxy colour r - i = 0.4
-  (as the LSST metrics framework does), and differentiated:
-  ``n(r) = 0.31 ln(10) x 46 x 3600 x 10**(0.31 (r - 0.4 - 25))``.
-  This gives n(23) = 2.1e4 deg^-2 mag^-1 and d log N / dm = 0.31,
-  consistent with the slope ~0.3 of deep R-band counts (Hogg et al. 1997,
-  MNRAS 288, 404) and with the compilation of Metcalfe et al. (2001,
-  MNRAS 323, 795).
-* ``r < 20``: the counts steepen towards the Euclidean 0.6 as seen by SDSS
-  (Yasuda et al. 2001, AJ 122, 1104); we continue from r = 20 with slope
-  0.45, which keeps the number of bright, big galaxies realistic.
-
-Galaxies are placed uniformly (no clustering) with centres in the tile.
-
-Galaxy morphology and sizes
----------------------------
-Each galaxy is an exponential disk plus a de Vaucouleurs bulge with the
-*same* half-light radius, axis ratio and position angle, so the half-light
-radius of the sum is exactly ``hlr`` (each component has half its light
-inside it).  The bulge is truncated at 5 half-light radii (the radius and
-flux given are those of the truncated profile): an untruncated r^1/4 law
-keeps 12 per cent of its light beyond 5 r_e, spread far below the noise,
-which would otherwise make the drawn flux fall short of the truth.  The
-bulge-to-total ratio ``bulge_frac`` is 0 for 60 per cent of galaxies (pure
-disks), uniform in [0.05, 0.4] for 30 per cent and uniform in [0.6, 1.0] for
-10 per cent (bulge-dominated) -- a simple mixture, not fitted to data.
-
-Sizes follow the size-magnitude relation of Miller et al. (2013, MNRAS 429,
-2858, appendix B1), fitted to HST disk scale lengths (Simard et al. 2002):
-``ln(r_d / arcsec) = -1.145 - 0.269 (i - 23)`` for the *median* scale
-length, with ``i = r - 0.4``.  The half-light radius of an exponential disk
-is ``1.678 r_d``, so the median ``hlr`` is 1.0" at r = 21, 0.54" at r = 23.4
-and 0.23" at r = 26.5 (:func:`median_hlr_arcsec`).  Around the median the
-sizes scatter as in Miller et al.: ``p(r) ~ r exp[-(r/a)**(4/3)]``, i.e.
-``(r/a)**(4/3)`` is Gamma(1.5)-distributed, with ``a`` set so the median is
-the relation above.  Sizes are kept within [0.03", 4 x median].
-
-Shapes: the shear ``g = (1 - q) / (1 + q)`` follows a Rayleigh distribution
-of scale 0.25 truncated at 0.8 (so q >= 0.11), position angles uniform.
-
-Stars
------
-Every star is the Moffat PSF.  Star counts, per deg^2 per mag,
-``n(r) = 250 x 10**(0.10 (r - 20))`` for 16 <= r <= mag_faint, i.e.
-~3000 stars deg^-2 for 16 < r < 25.  This is a chosen, plausible
-high-latitude value, not a fit to any survey; the shallow slope mimics the
-flattening of faint high-latitude star counts once the line of sight leaves
-the disk for the halo, as in Galaxy models such as Bahcall & Soneira (1980,
-ApJS 44, 73).  In addition ``n_saturated_stars``
-stars with r uniform in [12, 15] are placed at least 100 px (or size/6)
-from the tile edges, 60 px from the chip gap and ``size / (2 sqrt(n))``
-from each other (fewer are placed if a small tile has no room).
-
-Saturation and bleed trails
----------------------------
-Pixels whose final value reaches ``saturation`` are set to it.  For each
-saturated blob the charge above saturation in each column (from the
-noise-free model) bleeds along the column, half up and half down, filling
-``excess / (saturation - sky_level)`` further pixels to the saturation level,
-as charge does along a CCD column.  Saturated and bled pixels get mask bit 2.
-
-Drawing
--------
-Each source is drawn by GalSim (FFT, with the pixel response) into a stamp
-around its position that is added into the tile.  The stamp half-size is the
-largest of: the radius holding 99.5 per cent of the PSF flux; for galaxies,
-5 half-light radii along the major axis plus 1.5 FWHM; and the radius where
-the surface brightness falls below 1 per cent of ``sigma0`` (analytic
-Moffat or Sersic profile).  So >= 99.7 per cent of every source's flux is
-drawn; the truth column ``flux_in_tile`` records exactly how much landed in
-the tile (less for sources cut by the tile edge).  Galaxies are
-convolved with a Moffat truncated at 8 FWHM (2e-4 of the flux lies beyond),
-which GalSim transforms from a cached table and is several times faster than
-the untruncated one; stars use the untruncated Moffat with a folding
-threshold tightened for bright ones so their wings do not alias.
+A rotated TAN WCS, a sky level, noise that varies across the field with its weight map, a chip
+gap, galaxy and star populations, saturated stars with bleed trails, and a truth table; a pure
+function of its parameters and the root seed (only :func:`write_demo_tile` does I/O).  The sky
+model, its numbers and their sources are described in ``docs/demo.md``.
 """
 
 from __future__ import annotations
 
 import math
-import os
-import uuid
 from dataclasses import asdict, dataclass
 from pathlib import Path
 
@@ -199,6 +21,8 @@ from scipy import ndimage
 from scipy import stats
 
 from comest_bayes.errors import InputError, RunDirectoryError
+from comest_bayes.inject.profiles import sersic_b
+from comest_bayes.io.rundir import atomic_path
 from comest_bayes.seeding import rng_for
 
 __all__ = [
@@ -224,13 +48,13 @@ MASK_SATURATED = 2
 DEMO_FILES = {"image": "demo_image.fits", "weight": "demo_weight.fits", "mask": "demo_mask.fits",
               "truth": "demo_truth.fits"}
 
-# --- galaxy counts (LSST Science Book 2009, eq. 3.7; see the module docstring) ---
+# --- galaxy counts (LSST Science Book 2009, eq. 3.7; see docs/demo.md) ---
 GAL_CUMULATIVE_ARCMIN2_AT_I25 = 46.0
 GAL_FAINT_SLOPE = 0.31
 GAL_R_MINUS_I = 0.4
 GAL_BREAK_MAG = 20.0
 GAL_BRIGHT_SLOPE = 0.45
-# --- star counts (chosen, see the module docstring) ---
+# --- star counts (chosen, see docs/demo.md) ---
 STAR_DENSITY_AT_R20 = 250.0
 STAR_SLOPE = 0.10
 STAR_MAG_BRIGHT = 16.0
@@ -252,20 +76,15 @@ PSF_TRUNC_FWHM = 8.0
 PSF_STAMP_FLUX_FRACTION = 0.995
 STAMP_SB_FRACTION = 0.01
 MAX_STAMP_HALF = 400
-# Sersic b_n for n = 1 and 4: the root of P(2n, b_n) = 1/2 (regularised lower incomplete gamma,
-# scipy.special.gammaincinv(2n, 0.5)), so that r_e encloses half the light.  With
-# k_n = n e^{b_n} Gamma(2n) / b_n^{2n} the total flux is 2 pi r_e^2 I_e k_n (Graham & Driver 2005).
-_SERSIC = {1.0: 1.6783469900166612, 4.0: 7.669249442500804}
-
-
 def _sersic_k(n: float) -> float:
-    b = _SERSIC[n]
+    # with k_n = n e^{b_n} Gamma(2n) / b_n^{2n} the total flux is 2 pi r_e^2 I_e k_n (Graham & Driver 2005)
+    b = sersic_b(n)
     return n * math.exp(b) * math.gamma(2 * n) / b ** (2 * n)
 
 
 @dataclass(frozen=True)
 class _Spec:
-    """Validated parameters of a demo tile (see the module docstring)."""
+    """Validated parameters of a demo tile (see ``docs/demo.md``)."""
 
     size: int = 3000
     pixel_scale: float = 0.26
@@ -371,7 +190,7 @@ def _gal_faint_norm() -> float:
 
 
 def galaxy_number_density(mag) -> np.ndarray:
-    """Differential galaxy counts in r, per deg^2 per mag (see the module docstring).
+    """Differential galaxy counts in r, per deg^2 per mag (see ``docs/demo.md``).
 
     Parameters
     ----------
@@ -643,7 +462,7 @@ def _sersic_radius(n: float, flux: float, hlr: float, q: float, threshold: float
     """Major-axis radius (px) where a sheared Sersic of ``flux`` falls to ``threshold`` ADU/px."""
     if flux <= 0:
         return 0.0
-    b = _SERSIC[n]
+    b = sersic_b(n)
     i_e = flux / (2.0 * math.pi * hlr * hlr * _sersic_k(n))
     r_major = hlr / math.sqrt(q)
     if i_e * math.exp(b) <= threshold:  # even the centre is below the threshold
@@ -857,7 +676,7 @@ def make_demo_tile(seed: int = 0, *, size: int = 3000, pixel_scale: float = 0.26
                    star_counts: tuple | None = None, progress=None) -> DemoTile:
     """Synthesize the demo tile.
 
-    Every parameter is described in the module docstring; the defaults make
+    The defaults make
     a 3000 x 3000 DECam-like r-band tile (13 arcmin, 0.9" seeing, 5-sigma
     point-source depth r = 24.54 in its deepest part) with ~17500 galaxies
     and ~215 stars, in about 11 s on one core.
@@ -869,6 +688,74 @@ def make_demo_tile(seed: int = 0, *, size: int = 3000, pixel_scale: float = 0.26
     ``progress``, a callable ``progress(done, total)``, is told how many of
     the sources are drawn (about 200 times, the last with ``done == total``);
     drawing them is most of the time a large tile takes.
+
+    Parameters
+    ----------
+    seed : int, default 0
+        Root seed.  Independent streams ``("demo", "galaxies")``,
+        ``("demo", "stars")``, ``("demo", "bright_stars")`` and
+        ``("demo", "noise")`` come from :func:`comest_bayes.seeding.rng_for`,
+        so e.g. changing the star density does not move any galaxy.
+    size : int, default 3000
+        The tile is ``size x size`` pixels (3000 px = 13 arcmin at 0.26"/px).
+    pixel_scale : float, default 0.26
+        Arcsec per pixel (DECam-like).
+    zeropoint : float, default 30.0
+        AB magnitude of a source with a total flux of one image unit (ADU):
+        ``m = zeropoint - 2.5 log10(flux)``.  Written as ``MAGZERO``.
+    fwhm_arcsec : float, default 0.9
+        Seeing FWHM of the Moffat PSF, arcsec (``SEEING``).
+    moffat_beta : float, default 3.0
+        Moffat index of the PSF.
+    sky_level : float, default 300.0
+        Sky in ADU per pixel (~20.9 r mag/arcsec^2 for the defaults, a dark sky).
+    gain : float, default 15.0
+        Electrons per ADU (``GAIN``), at the deepest part of the tile.
+    read_noise : float, default 5.0
+        Read noise in electrons.
+    saturation : float, default 30000.0
+        Saturation level in ADU, sky included (``SATURATE``).
+    exptime : float, default 900.0
+        Nominal exposure time in seconds (``EXPTIME``); informational only.
+    depth_gradient : float, default 1.6
+        Ratio of the sky-noise sigma at the right edge (x = size-1) to that at
+        the left edge (x = 0); the sigma grows linearly in x between them.
+    shallow_quadrant : float, default 1.3
+        Extra factor on the noise sigma in the upper-left quadrant
+        (``x < size/2`` and ``y >= size/2``), a step in depth as left by a
+        missing exposure in a coadd.  1 disables it.
+    gap_width : int, default 40
+        Width in pixels of a vertical chip gap starting at ``x = round(0.62 size)``:
+        image 0, weight 0, mask bit 1.  0 disables it.
+    n_saturated_stars : int, default 4
+        Bright stars (r = 12-15) placed on purpose; they saturate.
+    galaxy_density, star_density : float, default 1.0
+        Multipliers of the galaxy and star number counts below (e.g. a high
+        ``star_density`` gives tests many isolated stars; 0 removes a population).
+    mag_bright : float, default 17.0
+        Brightest galaxy magnitude drawn.
+    faint_margin : float, default 2.0
+        Sources are drawn down to ``mag_faint = depth5_deep + faint_margin``,
+        i.e. 2 mag below the 5-sigma point-source limit of the deepest region,
+        so the undetected faint population that sets the confusion background is
+        there too.
+    ra_center, dec_center : float, default 150.1, 2.2
+        Tangent point (deg) at the tile centre (the COSMOS field).
+    rotation_deg : float, default 10.0
+        Rotation of the pixel grid: north points along ``(sin r, cos r)`` in
+        pixel coordinates (east to the left of north), so code that assumes
+        north = +y is exercised.
+    keep_model : bool, default False
+        Also return the noise-free model (sky + sources) as ``DemoTile.model``.
+    galaxy_counts, star_counts : (n_ref, slope, m_ref) or None, default None
+        Replace the galaxy (or star) number counts below by one power law
+        ``dN/dm = n_ref 10**(slope (m - m_ref))`` deg^-2 mag^-1 (before the
+        ``galaxy_density`` / ``star_density`` multiplier), over ``mag_bright``
+        (galaxies) or r = 16 (stars) to ``mag_faint``: mock populations of known
+        counts, e.g. for :mod:`comest_bayes.lf.fit`.  None (the default) keeps the
+        populations of ``docs/demo.md``; the ``n_saturated_stars`` are added either way.
+    progress : callable, optional
+        ``progress(done, total)``, see above.
 
     Returns
     -------
@@ -972,20 +859,6 @@ def demo_seeing_pix(image_path) -> float:
         raise InputError(f"{str(image_path)!r} is not a demo tile: its header lacks SEEING and PIXSCALE.") from None
 
 
-def _atomic_write(hdul: fits.HDUList, path: Path) -> None:
-    # the ".tmp-" prefix of every temporary name of a run: what a kill leaves is removed on resume
-    tmp = path.with_name(f".tmp-{os.getpid()}-{uuid.uuid4().hex[:8]}-{path.name}")
-    try:
-        hdul.writeto(tmp, overwrite=False, output_verify="exception")
-        os.replace(tmp, path)
-    except OSError as exc:
-        raise RunDirectoryError(f"could not write {str(path)!r} ({exc}); check that the directory is "
-                                f"writable and the disk is not full.") from None
-    finally:
-        if tmp.exists():
-            tmp.unlink()
-
-
 def write_demo_tile(tile: DemoTile, directory) -> dict[str, Path]:
     """Write the tile as FITS files into ``directory`` (created if needed).
 
@@ -1030,6 +903,7 @@ def write_demo_tile(tile: DemoTile, directory) -> dict[str, Path]:
     paths = {}
     for role, hdul in hdus.items():
         path = directory / DEMO_FILES[role]
-        _atomic_write(hdul, path)
+        with atomic_path(path) as tmp:
+            hdul.writeto(tmp, overwrite=False, output_verify="exception")
         paths[role] = path
     return paths
