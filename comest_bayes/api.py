@@ -27,6 +27,7 @@ from types import MappingProxyType
 from typing import Callable, Mapping
 
 from comest_bayes.errors import ComestError, ConfigError, InputError, InputFileError
+from comest_bayes.io import layout
 
 __all__ = ["run", "fit_completeness", "Run", "KindSummary", "ModelSummary", "Interval", "CompletenessFit",
            "config_from_options", "compute_from_options", "SHORTCUTS", "CATALOGS"]
@@ -40,7 +41,7 @@ CONFIG_OPTIONS = ("config", "overrides", "seed", "no_bnb", "precision_at")
 #: Options of :func:`compute_from_options` (where realizations run; results do not depend on them).
 COMPUTE_OPTIONS = ("ncpu", "executor", "scheduler")
 #: The merged catalogs a run writes per kind, ``catalogs/<kind>_<name>.fits``.
-CATALOGS = ("injected", "matched", "unmatched", "false", "outcomes")
+CATALOGS = layout.CATALOGS
 
 
 def _listed(value) -> str:
@@ -264,7 +265,7 @@ class Run:
         self._kind(kind)
         if name not in CATALOGS:
             raise InputError(f"unknown catalog {name!r}; a run holds {', '.join(CATALOGS)} per kind.")
-        path = self.path / "catalogs" / f"{kind}_{name}.fits"
+        path = self.path / layout.catalog(kind, name)
         if not path.is_file():
             raise InputFileError(f"{str(path)!r} does not exist; the run may be partial (rerun it to finish).")
         return Table.read(path)
@@ -292,7 +293,7 @@ class Run:
         """The run's ``summary.json`` as a dict (every number the run wrote)."""
         import json
 
-        path = self.path / "summary.json"
+        path = self.path / layout.SUMMARY
         if not path.is_file():
             raise InputFileError(f"{str(path)!r} does not exist; the run is {self.status}.")
         return json.loads(path.read_text())

@@ -38,6 +38,7 @@ from comest_bayes.pipeline import runtime
 from comest_bayes.errors import ComestError
 from comest_bayes.lf import MODES, SAMPLERS
 from comest_bayes.io.jsonio import dumps
+from comest_bayes.io import layout
 
 __all__ = ["main", "build_parser"]
 
@@ -274,7 +275,7 @@ def _cmd_fit(args, log) -> int:
     if m50.get("median") is not None:
         log(f"{args.kind}: {entry['name']}: m50 = {m50['median']:.3f} [68%: {m50['lo68']:.3f}, {m50['hi68']:.3f}]"
             + (" (extrapolated)" if m50.get("extrapolated") else ""))
-    log(f"wrote {args.out}/summary.json, posterior/{args.kind}_completeness.npz, figures/{args.kind}_completeness.png")
+    log(f"wrote {args.out}/{layout.SUMMARY}, {layout.posterior(args.kind)}, {layout.FIGURES_DIR}/{args.kind}_completeness.png")
     return 0
 
 
@@ -332,7 +333,7 @@ def _cmd_demo(args, log) -> int:
         raise ComestError(f"--size {args.size} is too small for a meaningful demo; use at least 256.")
     out = Path(args.out)
     guard = RunDirectory(out, {})
-    if not (out / "run.json").exists():
+    if not (out / layout.RUN).exists():
         guard.check()  # refuses a non-empty directory that is not a run, one in use, an unwritable place
     else:
         guard.refuse_if_in_use()
@@ -345,11 +346,11 @@ def _cmd_demo(args, log) -> int:
 
 
 def _demo_locked(args, config, out: Path, compute, log) -> int:
-    from comest_bayes.sim.demo import MASK_GAP, demo_seeing_pix, make_demo_tile, write_demo_tile
+    from comest_bayes.sim.demo import DEMO_FILES, MASK_GAP, demo_seeing_pix, make_demo_tile, write_demo_tile
     from comest_bayes.pipeline.stages import ImageOptions, run_pipeline
 
-    inputs = out / "inputs"
-    image_path = inputs / "demo_image.fits"
+    inputs = out / layout.INPUTS_DIR
+    image_path = inputs / DEMO_FILES["image"]
     marker = inputs / f"demo_seed{config.seed}_size{args.size}.done"
     if not marker.exists():
         if inputs.exists() and any(inputs.glob("demo_seed*.done")):
@@ -369,8 +370,8 @@ def _demo_locked(args, config, out: Path, compute, log) -> int:
         write_demo_tile(tile, inputs)
         marker.write_text("complete\n")
         log(f"demo: tile with {len(tile.truth)} true sources written to {inputs} in {time.perf_counter() - t0:.1f} s")
-    options = ImageOptions(path=str(image_path), weight=str(inputs / "demo_weight.fits"), weight_type="ivar",
-                           mask=str(inputs / "demo_mask.fits"), mask_bits=MASK_GAP)
+    options = ImageOptions(path=str(image_path), weight=str(inputs / DEMO_FILES["weight"]), weight_type="ivar",
+                           mask=str(inputs / DEMO_FILES["mask"]), mask_bits=MASK_GAP)
     # a small tile may hold too few stars to measure the seeing; the demo knows the seeing it drew
     fallback = (demo_seeing_pix(image_path), "the demo tile's own seeing (too few stars on it to measure)")
     result = run_pipeline(options, config, out, log=log, compute=compute, fwhm_fallback=fallback)

@@ -44,6 +44,7 @@ from comest_bayes.bayes.spec import load_spec, resolve_candidates
 from comest_bayes.bayes.posterior import (CompletenessPosterior, Footprint, FootprintHistogram, average_crossings, average_prob, coarse_noise_map, footprint_sample)
 from comest_bayes.seeding import int_seed_for, rng_for
 from comest_bayes.bayes.selection import choose_tau, select_model
+from comest_bayes.io import layout
 
 __all__ = ["fit_kind", "fit_task", "purity_outcomes", "warm_state", "MIN_OUTCOMES"]
 
@@ -135,11 +136,11 @@ def fit_task(task: dict) -> tuple:
     run = Path(task["run_dir"])
     kind, quantity, config = task["kind"], task["quantity"], task["config"]
     if quantity == "completeness":
-        table = Table.read(run / "catalogs" / f"{kind}_outcomes.fits", mask_invalid=False)
+        table = Table.read(run / layout.catalog(kind, "outcomes"), mask_invalid=False)
         outcome_column = "detected"
     else:
-        table = purity_outcomes(Table.read(run / "catalogs" / f"{kind}_matched.fits", mask_invalid=False),
-                                Table.read(run / "catalogs" / f"{kind}_false.fits", mask_invalid=False),
+        table = purity_outcomes(Table.read(run / layout.catalog(kind, "matched"), mask_invalid=False),
+                                Table.read(run / layout.catalog(kind, "false"), mask_invalid=False),
                                 config.matching.mag_column)
         outcome_column = "real"
         nreal = int(np.sum(table["real"]))
@@ -152,8 +153,8 @@ def fit_task(task: dict) -> tuple:
     footprints, noise_grid = shared.get("footprints") or {}, shared.get("noise_grid")
     # the noise map is only read when the run did not pass the footprint histogram this fit needs and the grid
     have = footprint_grid(needs_smooth(task["requested"])) in footprints and noise_grid is not None
-    noise = None if have else fits.getdata(run / "noise.fits").astype(np.float32)
-    mask = fits.getdata(run / "mask.fits").astype(bool)
+    noise = None if have else fits.getdata(run / layout.NOISE).astype(np.float32)
+    mask = fits.getdata(run / layout.MASK).astype(bool)
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
         post, entry = fit_kind(table, kind=kind, quantity=quantity, requested=task["requested"], config=config,
@@ -496,9 +497,9 @@ def fit_outcome_file(path, out, *, kind: str = "injections", model: str = "auto"
                            mask=bad, wcs_header=None, mag_range=(lo, hi), mag_centers=centers,
                            footprint_points=points, log=log)
     binned = R.completeness(mags, np.asarray(table["detected"]).astype(bool), edges)
-    (out / "posterior").mkdir(exist_ok=True)
-    post.save(out / "posterior" / f"{kind}_completeness.npz")
-    entry["posterior_file"] = f"posterior/{kind}_completeness.npz"
+    (out / layout.POSTERIOR_DIR).mkdir(exist_ok=True)
+    post.save(out / layout.posterior(kind))
+    entry["posterior_file"] = layout.posterior(kind)
     entry["footprint"] = footprint
     summary = {"source": str(path), "kinds": {kind: {"completeness": binned.to_dict(), "model": entry}}}
     from comest_bayes.report.plots import save_figure
@@ -508,8 +509,8 @@ def fit_outcome_file(path, out, *, kind: str = "injections", model: str = "auto"
     ax = ratio_curve(BinnedCurve(binned.centers, binned.ratio, binned.lower, binned.upper, binned.n),
                      posterior=PosteriorBand.from_dict(entry["curve"], label=entry["name"]))
     ax.set_title(f"{kind}: {len(table)} injections from {path.name}")
-    (out / "figures").mkdir(exist_ok=True)
-    save_figure(ax.figure, out / "figures" / f"{kind}_completeness")
-    with atomic_path(out / "summary.json") as tmp:
+    (out / layout.FIGURES_DIR).mkdir(exist_ok=True)
+    save_figure(ax.figure, out / layout.FIGURES_DIR / f"{kind}_completeness")
+    with atomic_path(out / layout.SUMMARY) as tmp:
         tmp.write_text(dumps(summary, indent=2, fallback=str) + "\n")
     return summary

@@ -17,10 +17,11 @@ from pathlib import Path
 
 from comest_bayes.errors import InputFileError, RunDirectoryError
 from comest_bayes.io.rundir import LOCK_FILE, RUN_FILE, lock_holder
+from comest_bayes.io import layout
 
 __all__ = ["run_info", "format_info", "model_facts"]
 
-SUMMARY_FILE = "summary.json"
+SUMMARY_FILE = layout.SUMMARY
 #: Stages in the order of the data flow (fits follow, one per kind and quantity).
 STAGE_ORDER = ("detect", "fwhm", "sourcefree", "baseline")
 
@@ -133,8 +134,8 @@ def run_info(run_dir) -> dict:
 
     realizations = {}
     for kind in injection.get("kinds") or []:
-        folder = root / "sims" / kind
-        realizations[kind] = len(list(folder.glob("r[0-9]*.fits"))) if folder.is_dir() else 0
+        sims = root / layout.SIMS_DIR
+        realizations[kind] = len(list(sims.glob(layout.realization_glob(kind)))) if sims.is_dir() else 0
 
     warnings_ = []
     kinds = {}

@@ -46,14 +46,15 @@ from astropy.io import fits
 
 from comest_bayes.errors import OutputWriteError, RunDirectoryError
 from comest_bayes.io.jsonio import dumps
+from comest_bayes.io import layout
 
 __all__ = ["RunDirectory", "atomic_path", "file_checksum", "versions", "check_writable", "os_reason",
            "lock_holder"]
 
-RUN_FILE = "run.json"
-LOCK_FILE = "run.lock"
+RUN_FILE = layout.RUN
+LOCK_FILE = layout.LOCK
 #: Subfolders a run directory may hold besides its own files (the demo's synthetic inputs).
-ALLOWED_FOREIGN = {"inputs"}
+ALLOWED_FOREIGN = {layout.INPUTS_DIR}
 #: Prefix of every temporary name a run writes; what a killed run leaves is removed on resume.
 TMP_PREFIX = ".tmp-"
 

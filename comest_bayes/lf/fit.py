@@ -18,6 +18,7 @@ from comest_bayes.lf import MODES, SAMPLERS
 from comest_bayes.lf.model import build_inputs, effective_area, fit_counts
 from comest_bayes.lf.result import LFResult
 from comest_bayes.io.jsonio import dumps
+from comest_bayes.io import layout
 
 __all__ = ['run_lf']
 
@@ -65,10 +66,16 @@ def _default_range(run_state: dict, post) -> tuple[float, float]:
     return round(lo, 2), round(hi, 2)
 
 
+def _kinds_with_posteriors(run: Path) -> list[str]:
+    """The kinds whose completeness posterior the run saved."""
+    suffix = "_completeness.npz"
+    return [p.name[: -len(suffix)] for p in (run / layout.POSTERIOR_DIR).glob("*" + suffix)]
+
+
 def _update_summary(run_dir: Path, name: str, entry: dict) -> None:
     from comest_bayes.io.rundir import atomic_path
 
-    path = run_dir / "summary.json"
+    path = run_dir / layout.SUMMARY
     data = json.loads(path.read_text()) if path.is_file() else {}
     data.setdefault("lf", {})[name] = entry
     with atomic_path(path) as tmp:
@@ -131,15 +138,15 @@ def run_lf(run_dir, *, kind: str = "point", catalog=None, mag_column: str = "mag
         raise ConfigError(f"--mode must be one of {list(MODES)}, got {mode!r}.")
     if sampler not in SAMPLERS:
         raise ConfigError(f"--sampler must be one of {list(SAMPLERS)}, got {sampler!r}.")
-    if not run.is_dir() or not (run / "run.json").is_file():
-        raise InputFileError(f"{str(run)!r} is not a run directory (no run.json); run `comest-bayes run` first.")
-    post_path = run / "posterior" / f"{kind}_completeness.npz"
+    if not run.is_dir() or not (run / layout.RUN).is_file():
+        raise InputFileError(f"{str(run)!r} is not a run directory (no {layout.RUN}); run `comest-bayes run` first.")
+    post_path = run / layout.posterior(kind)
     if not post_path.is_file():
-        have = sorted(p.name.replace("_completeness.npz", "") for p in (run / "posterior").glob("*_completeness.npz"))
+        have = sorted(k for k in _kinds_with_posteriors(run))
         raise InputFileError(f"the run has no completeness posterior for kind {kind!r} ({post_path} is missing); "
                              f"kinds with one: {have or 'none (run with fit.model set, not none)'}.")
-    outcomes_path = run / "catalogs" / f"{kind}_outcomes.fits"
-    for p in (outcomes_path, run / "mask.fits"):
+    outcomes_path = run / layout.catalog(kind, "outcomes")
+    for p in (outcomes_path, run / layout.MASK):
         if not p.is_file():
             raise InputFileError(f"the run directory lacks {p.relative_to(run)}; rerun `comest-bayes run` to finish it.")
     spec = load_count_spec(model)
@@ -147,11 +154,11 @@ def run_lf(run_dir, *, kind: str = "point", catalog=None, mag_column: str = "mag
         if len(mag_range) != 2 or not all(math.isfinite(float(v)) for v in mag_range) or \
                 not float(mag_range[1]) > float(mag_range[0]):
             raise InputError(f"--mag-range must be two finite magnitudes LO < HI, got {list(mag_range)}.")
-    cat_path = Path(catalog) if catalog is not None else run / "detection.fits"
+    cat_path = Path(catalog) if catalog is not None else run / layout.DETECTION
     if not cat_path.is_file():
         raise InputFileError(f"catalog {str(cat_path)!r} does not exist.")
     table = _read_catalog(cat_path, mag_column)
-    state = json.loads((run / "run.json").read_text())
+    state = json.loads((run / layout.RUN).read_text())
     scale = (state.get("image") or {}).get("pixel_scale_arcsec")
     if not scale:
         raise InputError("run.json records no pixel scale (image.pixel_scale_arcsec); the area cannot be computed.")
@@ -160,7 +167,7 @@ def run_lf(run_dir, *, kind: str = "point", catalog=None, mag_column: str = "mag
     from astropy.table import Table
 
     post = CompletenessPosterior.load(post_path)
-    mask = fits.getdata(run / "mask.fits").astype(bool)
+    mask = fits.getdata(run / layout.MASK).astype(bool)
     area = effective_area(mask, float(scale))
     mags = np.asarray(table[mag_column], float)
     if mags.ndim == 2:
@@ -180,10 +187,10 @@ def run_lf(run_dir, *, kind: str = "point", catalog=None, mag_column: str = "mag
     res = fit_counts(inputs, CountModel(spec), mode=mode, post=post, seed=seed, ncomp=ncomp, min_ess=min_ess,
                      max_steps=max_steps, name=name, kind=kind, log=log, sampler=sampler)
     res.meta.update({"catalog": str(cat_path), "mag_column": mag_column, "run_dir": str(run),
-                     "area_source": "unmasked pixels of mask.fits x (pixel scale from run.json, WCS at the centre)^2"})
-    out = run / "lf" / name
+                     "area_source": f"unmasked pixels of {layout.MASK} x (pixel scale from {layout.RUN}, WCS at the centre)^2"})
+    out = run / layout.lf_dir(name)
     res.save(out)
-    files = ["lf_posterior.npz", "lf.json"]
+    files = [layout.LF_POSTERIOR, layout.LF_JSON]
     if figures:
         from comest_bayes.report.plots import save_figure
         from comest_bayes.report.plots.lf import corner_figure, counts_figure
@@ -192,7 +199,7 @@ def run_lf(run_dir, *, kind: str = "point", catalog=None, mag_column: str = "mag
         save_figure(corner_figure(res), out / "corner", formats=("png",))
         files += ["counts.png", "corner.png"]
     entry = {k: v for k, v in res.to_json().items() if k not in ("observed", "diagnostics")}
-    entry["files"] = [f"lf/{name}/{f}" for f in files]
+    entry["files"] = [f"{layout.lf_dir(name)}/{f}" for f in files]
     entry["converged"] = bool(res.diagnostics.get("converged", False))
     _update_summary(run, name, entry)
     for w in res.warnings:

@@ -11,6 +11,7 @@ import numpy as np
 from comest_bayes.errors import InputFileError
 from comest_bayes.io.jsonio import dumps, jsonable
 from comest_bayes.recover.transfer import PhotometricTransfer
+from comest_bayes.io import layout
 
 __all__ = ['LFResult']
 
@@ -117,11 +118,11 @@ class LFResult:
                       "diagnostics": self.diagnostics, "warnings": self.warnings, "meta": self.meta}))}
         if self.transfer is not None:
             arrays.update(self.transfer.to_arrays())
-        npz = d / "lf_posterior.npz"
+        npz = d / layout.LF_POSTERIOR
         with atomic_path(npz) as tmp:
             with open(tmp, "wb") as fh:
                 np.savez_compressed(fh, **arrays)
-        with atomic_path(d / "lf.json") as tmp:
+        with atomic_path(d / layout.LF_JSON) as tmp:
             tmp.write_text(dumps(self.to_json(), indent=2))
         return npz
 
@@ -130,7 +131,7 @@ class LFResult:
         """Read a result from ``lf_posterior.npz`` (or the directory holding it)."""
         p = Path(path)
         if p.is_dir():
-            p = p / "lf_posterior.npz"
+            p = p / layout.LF_POSTERIOR
         if not p.is_file():
             raise InputFileError(f"luminosity-function result {str(p)!r} does not exist.")
         with np.load(p, allow_pickle=False) as z:

@@ -28,11 +28,12 @@ from comest_bayes.io.image import ImageData, load_image
 from comest_bayes.io.rundir import RunDirectory, file_checksum
 from comest_bayes.seeding import seed_sequence
 from comest_bayes.io.jsonio import dumps
+from comest_bayes.io import layout
 
 __all__ = ["ImageOptions", "ComputeOptions", "RunResult", "run_pipeline", "output_header"]
 
 #: The file injections are drawn on, by ``injection.on``.
-_BASE_FILES = {"sfi": "sfi.fits", "bnb": "bnb.fits", "observed": "observed.fits"}
+_BASE_FILES = layout.BASE_IMAGES
 
 #: Narrowest target PSF (FWHM, arcsec) COSMOS galaxies may be drawn with: the HST/ACS F814W PSF is
 #: about 0.12" FWHM (Koekemoer et al. 2007) and must be deconvolved (GalSim RealGalaxy).
@@ -177,9 +178,11 @@ def output_header(image: ImageData, extra: dict | None = None, *, image_units: b
 
 
 def _load_detection(run: RunDirectory, image: ImageData) -> DetectionResult:
-    cat = Table.read(run.file("detection.fits"))
+    cat = Table.read(run.file(layout.DETECTION))
     info = run.stage_info("detect")
-    arrays = {name: fits.getdata(run.file(f"{name}.fits")) for name in ("segmentation", "background", "rms", "noise")}
+    arrays = {name: fits.getdata(run.file(file)) for name, file in (("segmentation", layout.SEGMENTATION),
+                                                                   ("background", layout.BACKGROUND),
+                                                                   ("rms", layout.RMS), ("noise", layout.NOISE))}
     return DetectionResult(catalog=cat, segmentation=arrays["segmentation"].astype(np.int32),
                            background=arrays["background"].astype(np.float32),
                            rms=arrays["rms"].astype(np.float32), noise=arrays["noise"].astype(np.float32),
@@ -342,10 +345,10 @@ def _run_pipeline(options: ImageOptions, config: RunConfig, out_dir, *, log, com
     if run.resumed:
         log(f"resuming the run in {run.path} (finished stages are skipped)")
     if det_seconds is not None:
-        files = [run.write_table("detection.fits", set_image_units(det.catalog, image.bunit), extname="DETECTIONS")]
-        files.append(run.write_image("segmentation.fits", det.segmentation, header))
-        for name in ("background", "rms", "noise"):
-            files.append(run.write_image(f"{name}.fits", getattr(det, name), output_header(image, image_units=True)))
+        files = [run.write_table(layout.DETECTION, set_image_units(det.catalog, image.bunit), extname="DETECTIONS")]
+        files.append(run.write_image(layout.SEGMENTATION, det.segmentation, header))
+        for name, file in (("background", layout.BACKGROUND), ("rms", layout.RMS), ("noise", layout.NOISE)):
+            files.append(run.write_image(file, getattr(det, name), output_header(image, image_units=True)))
         run.record_stage("detect", files=files, seconds=det_seconds, meta=det.meta, nsources=len(det.catalog))
         log(f"detect: {len(det.catalog)} sources with {config.detection.backend} "
             f"(threshold {config.detection.thresh} x {det.meta.get('noisemod', 'sigma')} noise) in {det_seconds:.1f} s")
@@ -377,13 +380,13 @@ def _run_pipeline(options: ImageOptions, config: RunConfig, out_dir, *, log, com
     if sf is None:
         log("sourcefree: done earlier")
     else:
-        files = [run.write_image("sfi.fits", sf.sfi, output_header(image, {"IMAGETYP": "source-free"},
+        files = [run.write_image(layout.SFI, sf.sfi, output_header(image, {"IMAGETYP": "source-free"},
                                                                    image_units=True))]
         if sf.bnb is not None:
-            files.append(run.write_image("bnb.fits", sf.bnb, output_header(image, {"IMAGETYP": "bright-and-big"},
+            files.append(run.write_image(layout.BNB, sf.bnb, output_header(image, {"IMAGETYP": "bright-and-big"},
                                                                            image_units=True)))
         if config.injection.on == "observed":  # the base of the injections, read like the others
-            files.append(run.write_image("observed.fits", image.data.astype(np.float32),
+            files.append(run.write_image(layout.OBSERVED, image.data.astype(np.float32),
                                          output_header(image, {"IMAGETYP": "observed"}, image_units=True)))
         run.record_stage("sourcefree", files=files, seconds=sf_seconds, meta=sf.meta, kept_ids=sf.kept_ids,
                          replacement=replacement)
@@ -474,8 +477,8 @@ def _injection_stages(run: RunDirectory, image: ImageData, det: DetectionResult,
             bdet = detect_with_backend(base, mask=image.mask, weight_noise=weight_noise, zeropoint=image.zeropoint,
                                        gain=image.gain, saturation=image.saturation, wcs=image.wcs,
                                        config=config.detection)
-        files = [run.write_table("baseline.fits", set_image_units(bdet.catalog, image.bunit)),
-                 run.write_image("mask.fits", image.mask.astype(np.uint8), header)]
+        files = [run.write_table(layout.BASELINE, set_image_units(bdet.catalog, image.bunit)),
+                 run.write_image(layout.MASK, image.mask.astype(np.uint8), header)]
         mag_range = tuple(inj.mag_range) if inj.mag_range else _auto_mag_range(image, det, _psf_nea(config, image, psf_choice))
         run.record_stage("baseline", files=files, seconds=time.perf_counter() - t0, nsources=len(bdet.catalog),
                          mag_range=list(mag_range), base=base_name, reused_detection=reused)
@@ -486,18 +489,18 @@ def _injection_stages(run: RunDirectory, image: ImageData, det: DetectionResult,
     timings["baseline"] = run.stage_info("baseline").get("seconds")
 
     ctx = SimContext(
-        base_path=str(run.file(base_name)), mask_path=str(run.file("mask.fits")), noise_path=str(run.file("noise.fits")),
-        baseline_path=str(run.file("baseline.fits")), detection_path=str(run.file("detection.fits")),
+        base_path=str(run.file(base_name)), mask_path=str(run.file(layout.MASK)), noise_path=str(run.file(layout.NOISE)),
+        baseline_path=str(run.file(layout.BASELINE)), detection_path=str(run.file(layout.DETECTION)),
         shape=tuple(image.shape), wcs_header=None if image.wcs is None else image.wcs.to_header(relax=True).tostring(),
         zeropoint=image.zeropoint, gain=image.gain, saturation=image.saturation, pixel_scale=image.pixel_scale,
         fwhm=float(image.fwhm), mag_range=mag_range, noise_mode=str(det.meta.get("noisemod", "background")), detection=config.detection, injection=inj,
         matching=config.matching, root_seed=config.seed,
-        image_dir=str(run.file("sims")) if inj.write_images else None,
+        image_dir=str(run.file(layout.SIMS_DIR)) if inj.write_images else None,
         psf_beta=float(psf_choice.get("beta") or 0.0),
         psf_pixel_integrated=bool(psf_choice.get("pixel_integrated", False)))
     ctx = _contexts_by_kind(ctx, run.state.get("injection_density") or {})
 
-    sims = run.file("sims")
+    sims = run.file(layout.SIMS_DIR)
     for stale in sims.glob("*/.tmp-*"):  # a killed run's half-written realization files
         stale.unlink()
     failures: list[str] = []
@@ -542,8 +545,8 @@ def _injection_stages(run: RunDirectory, image: ImageData, det: DetectionResult,
     t0 = time.perf_counter()
     edges = R.magnitude_edges(mag_range[0], mag_range[1], config.ratios.mag_bin)
     kinds = {}
-    run.file("catalogs").mkdir(exist_ok=True)
-    run.file("maps").mkdir(exist_ok=True)
+    run.file(layout.CATALOG_DIR).mkdir(exist_ok=True)
+    run.file(layout.MAPS_DIR).mkdir(exist_ok=True)
     stage_seconds = {}
     for kind in inj.kinds:
         done = [i for i in range(nsims[kind]) if realization_file(sims, kind, i).exists()]
@@ -552,14 +555,14 @@ def _injection_stages(run: RunDirectory, image: ImageData, det: DetectionResult,
             continue
         merged = merge_realizations(sims, kind, done)
         stage_seconds[kind] = merged.pop("seconds")
-        for name in ("injected", "matched", "unmatched", "false", "outcomes"):
-            run.write_table(f"catalogs/{kind}_{name}.fits", set_image_units(merged[name], image.bunit))
+        for name in layout.CATALOGS:
+            run.write_table(layout.catalog(kind, name), set_image_units(merged[name], image.bunit))
         comp = kind_binned(merged, edges, config)["completeness"]
         m50 = R.magnitude_at(comp, 0.5)
         map_edges = (np.asarray(config.ratios.map_mag_edges, float) if config.ratios.map_mag_edges
                      else R.transition_map_mag_edges(comp) if np.isfinite(m50)
                      else R.default_map_mag_edges(float(np.mean(mag_range))))
-        maps_name = f"maps/{kind}_maps.fits"
+        maps_name = layout.binned_maps(kind)
         hdul = maps_hdulist(merged, image_shape=image.shape, pixel_scale=image.pixel_scale, wcs=image.wcs,
                             config=config, mag_edges=map_edges)
         with atomic_path(run.file(maps_name)) as tmp:
@@ -599,7 +602,7 @@ def _injection_stages(run: RunDirectory, image: ImageData, det: DetectionResult,
     }
     if adaptive_summary is not None:
         summary["adaptive"] = adaptive_summary
-    run.write_json("summary.json", summary)
+    run.write_json(layout.SUMMARY, summary)
     return summary
 
 
@@ -735,8 +738,8 @@ def _adaptive_injection(run: RunDirectory, ctx, config: RunConfig, compute: "Com
 
     ad = config.adaptive
     lo, hi = float(mag_range[0]), float(mag_range[1])
-    sims = run.file("sims")
-    designs = run.file("designs")
+    sims = run.file(layout.SIMS_DIR)
+    designs = run.file(layout.DESIGNS_DIR)
     designs.mkdir(exist_ok=True)
     at_f = ad.target == "f"
     mags_f = tuple(float(m) for m in ad.magnitudes)
@@ -767,7 +770,7 @@ def _adaptive_injection(run: RunDirectory, ctx, config: RunConfig, compute: "Com
             size = ad.pilot_nsims if st["n"] == 0 else max(1, math.ceil(ad.growth * st["n"]))
             size = min(size, ad.max_nsims - st["n"])
             design = st["design"]
-            path = designs / f"{kind}_batch{k}.json"
+            path = run.file(layout.design(kind, k))
             if path.exists():
                 check_recorded(MagnitudeDesign.from_dict(json.loads(path.read_text())), design, k)
             else:
@@ -850,7 +853,7 @@ def _fit_stages(run: RunDirectory, image: ImageData, det: DetectionResult, confi
 
     if config.fit.model == "none":
         return 0
-    run.file("posterior").mkdir(exist_ok=True)
+    run.file(layout.POSTERIOR_DIR).mkdir(exist_ok=True)
     centers = 0.5 * (edges[:-1] + edges[1:])
     wcs_header = None if image.wcs is None else image.wcs.to_header(relax=True).tostring()
     jobs = [("completeness", config.fit.model)]
@@ -897,7 +900,7 @@ def _fit_stages(run: RunDirectory, image: ImageData, det: DetectionResult, confi
         key = "model" if quantity == "completeness" else "purity_model"
         files = []
         if post is not None:
-            files.append(str(post.save(run.file(f"posterior/{kind}_{quantity}.npz")).relative_to(run.path)))
+            files.append(str(post.save(run.file(layout.posterior(kind, quantity))).relative_to(run.path)))
             entry["posterior_file"] = files[0]
             entry["m50_map_file"] = None
             if quantity == "completeness" and post.spec.spatial != "none":
@@ -906,7 +909,7 @@ def _fit_stages(run: RunDirectory, image: ImageData, det: DetectionResult, confi
                 header["BUNIT"] = ("mag", "50% completeness magnitude")
                 hdul = fits.HDUList([fits.PrimaryHDU(), fits.ImageHDU(med.astype(np.float32), header, name="M50"),
                                      fits.ImageHDU(sd.astype(np.float32), header, name="M50_SD")])
-                name = f"maps/{kind}_m50.fits"
+                name = layout.m50_map(kind)
                 with atomic_path(run.file(name)) as tmp:
                     hdul.writeto(tmp)
                 entry["m50_map_file"] = name

@@ -59,6 +59,7 @@ from comest_bayes.config import DetectionConfig, InjectionConfig, MatchingConfig
 from comest_bayes.errors import InputError
 from comest_bayes.recover.matching import classify_detections, match_one_to_one
 from comest_bayes.seeding import int_seed_for, rng_for
+from comest_bayes.io import layout
 
 __all__ = ["SimContext", "RealizationTask", "RealizationResult", "run_realization", "merge_realizations",
            "realization_file", "OUTCOME_COLUMNS"]
@@ -205,7 +206,8 @@ def _cosmos(injection: InjectionConfig):
 
 
 def realization_file(directory, kind: str, index: int) -> Path:
-    return Path(directory) / kind / f"r{index:05d}.fits"
+    """The result table of one realization under ``directory`` (the run's :data:`~comest_bayes.io.layout.SIMS_DIR`)."""
+    return Path(directory) / layout.realization(kind, index)
 
 
 def _detect(image, mask, noise, ctx: SimContext):
@@ -265,7 +267,7 @@ def _run_realization(task: RealizationTask) -> RealizationResult:
     if ctx.image_dir:  # before detection, which subtracts the background in place
         from comest_bayes.io.rundir import atomic_path
 
-        path = Path(ctx.image_dir) / kind / f"image_r{index:05d}.fits"
+        path = Path(ctx.image_dir) / layout.realization_image(kind, index)
         path.parent.mkdir(parents=True, exist_ok=True)
         with atomic_path(path) as tmp:
             fits.PrimaryHDU(image).writeto(tmp)

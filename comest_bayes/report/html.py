@@ -43,6 +43,7 @@ import numpy as np
 from comest_bayes.report.plots import figure_png, save_figure
 from comest_bayes.report import rundata as RD
 from comest_bayes.io.rundir import atomic_path
+from comest_bayes.io import layout
 
 __all__ = ["write_report", "ReportFigure", "lf_figures"]
 
@@ -312,7 +313,7 @@ def _images_section(r: _Report, center, size: int) -> None:
 
     run = r.run
     r.h2("images", "Images")
-    if not run.file("sims").is_dir() or not any(run.file("sims").glob("*/r[0-9]*.fits")):
+    if not run.file(layout.SIMS_DIR).is_dir() or not any(run.file(layout.SIMS_DIR).glob(layout.realization_glob())):
         r.note("no realization is on disk yet, so there are no image panels.")
         return
     holder = {}
@@ -588,10 +589,10 @@ def lf_figures(lf_dir) -> list:
     from comest_bayes.report.plots.lf import corner_figure, counts_figure
 
     root = Path(lf_dir)
-    if (root / "lf_posterior.npz").is_file():
+    if (root / layout.LF_POSTERIOR).is_file():
         dirs = [root]
     elif root.is_dir():
-        dirs = sorted(p.parent for p in root.glob("*/lf_posterior.npz"))
+        dirs = sorted(p.parent for p in root.glob("*/" + layout.LF_POSTERIOR))
     else:
         return []
     out = []
@@ -603,7 +604,7 @@ def lf_figures(lf_dir) -> list:
 
 
 def _lf_section(r: _Report) -> None:
-    lf_dir = r.run.file("lf")
+    lf_dir = r.run.file(layout.LF_DIR)
     if not lf_dir.is_dir():
         return
     r.h2("lf", "Luminosity function")
@@ -765,8 +766,8 @@ def write_report(run_dir, out=None, *, log: Callable[[str], None] | None = None,
     log = log or (lambda s: None)
     t0 = time.perf_counter()
     run = RD.open_run(run_dir)
-    out = Path(out) if out is not None else run.path / "report.html"
-    figdir = run.path / "figures"
+    out = Path(out) if out is not None else run.path / layout.REPORT
+    figdir = run.path / layout.FIGURES_DIR
     figdir.mkdir(exist_ok=True)
     r = _Report(run, figdir, dpi, log)
     with matplotlib.rc_context({"font.size": 10, "axes.titlesize": 11, "axes.labelsize": 10, "legend.fontsize": 8,

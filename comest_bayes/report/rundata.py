@@ -17,6 +17,7 @@ from astropy.table import Table
 
 from comest_bayes.errors import InputFileError, RunDirectoryError
 from comest_bayes.report.plots.data import BinnedCurve, ChainSamples, Cutout, DepthLine, MapPlane, PosteriorBand
+from comest_bayes.io import layout
 
 __all__ = ["RunData", "open_run", "binned_curve", "depth_lines", "load_posterior", "posterior_band",
            "chain_samples", "map_planes", "m50_map", "matched_magnitudes", "Figure3Data", "figure3_data",
@@ -83,9 +84,9 @@ def open_run(run_dir) -> RunData:
     path = Path(run_dir)
     if not path.is_dir():
         raise RunDirectoryError(f"{str(path)!r} is not a directory; give the --out directory of a comest-bayes run.")
-    run_file = path / "run.json"
+    run_file = path / layout.RUN
     if not run_file.is_file():
-        raise RunDirectoryError(f"{str(path)!r} holds no run.json, so it is not a comest-bayes run directory; "
+        raise RunDirectoryError(f"{str(path)!r} holds no {layout.RUN}, so it is not a comest-bayes run directory; "
                                 f"give the --out directory of a run (comest-bayes run/demo).")
     try:
         state = json.loads(run_file.read_text())
@@ -94,11 +95,11 @@ def open_run(run_dir) -> RunData:
     if not isinstance(state, dict) or "fingerprint" not in state:
         raise RunDirectoryError(f"{str(run_file)!r} is not a comest-bayes run record (no fingerprint).")
     summary = None
-    if (path / "summary.json").is_file():
+    if (path / layout.SUMMARY).is_file():
         try:
-            summary = json.loads((path / "summary.json").read_text())
+            summary = json.loads((path / layout.SUMMARY).read_text())
         except (OSError, json.JSONDecodeError) as exc:
-            raise RunDirectoryError(f"{str(path / 'summary.json')!r} is unreadable ({exc}).") from None
+            raise RunDirectoryError(f"{str(path / layout.SUMMARY)!r} is unreadable ({exc}).") from None
     return RunData(path=path, state=state, summary=summary)
 
 
@@ -131,7 +132,7 @@ def load_posterior(run: RunData, kind: str, quantity: str = "completeness"):
 
     key = "model" if quantity == "completeness" else "purity_model"
     entry = run.kind(kind).get(key) or {}
-    name = entry.get("posterior_file") or f"posterior/{kind}_{quantity}.npz"
+    name = entry.get("posterior_file") or layout.posterior(kind, quantity)
     path = run.file(name)
     if not path.is_file():
         return None
@@ -188,7 +189,7 @@ def _map_planes(hdul, name: str, nname: str | None) -> list:
 
 def map_planes(run: RunData, kind: str) -> tuple[list, list] | None:
     """Completeness and purity planes of ``maps/<kind>_maps.fits``, or None when absent."""
-    name = (run.kind(kind).get("maps") or {}).get("file") or f"maps/{kind}_maps.fits"
+    name = (run.kind(kind).get("maps") or {}).get("file") or layout.binned_maps(kind)
     path = run.file(name)
     if not path.is_file():
         return None
@@ -198,7 +199,7 @@ def map_planes(run: RunData, kind: str) -> tuple[list, list] | None:
 
 def m50_map(run: RunData, kind: str) -> tuple[np.ndarray, np.ndarray, float] | None:
     """``(median, sd, bin_pix)`` of ``maps/<kind>_m50.fits``, or None (model without a spatial term)."""
-    name = (run.kind(kind).get("model") or {}).get("m50_map_file") or f"maps/{kind}_m50.fits"
+    name = (run.kind(kind).get("model") or {}).get("m50_map_file") or layout.m50_map(kind)
     path = run.file(name)
     if not path.is_file():
         return None
@@ -216,7 +217,7 @@ def _first_column(values) -> np.ndarray:
 
 def matched_magnitudes(run: RunData, kind: str) -> tuple[np.ndarray, np.ndarray] | None:
     """True and measured (``matching.mag_column``) magnitudes of the recovered injections of ``kind``."""
-    path = run.file(f"catalogs/{kind}_matched.fits")
+    path = run.file(layout.catalog(kind, "matched"))
     if not path.is_file():
         return None
     t = Table.read(path, mask_invalid=False)
@@ -239,7 +240,7 @@ def _decode(table: Table) -> Table:
 def _realization_tables(run: RunData, kind: str, index: int) -> tuple[Table, Table]:
     from comest_bayes.recover.realization import realization_file
 
-    path = realization_file(run.file("sims"), kind, index)
+    path = realization_file(run.file(layout.SIMS_DIR), kind, index)
     if not path.is_file():
         raise InputFileError(f"realization {kind} #{index} ({path}) does not exist in this run.")
     with fits.open(path) as hdul:
@@ -247,7 +248,7 @@ def _realization_tables(run: RunData, kind: str, index: int) -> tuple[Table, Tab
 
 
 def _base_name(run: RunData) -> str:
-    return (run.state.get("stages", {}).get("baseline") or {}).get("base") or "sfi.fits"
+    return (run.state.get("stages", {}).get("baseline") or {}).get("base") or layout.SFI
 
 
 def simulated_image(run: RunData, kind: str, index: int = 0, *, prefer_saved: bool = True) -> tuple[np.ndarray, str]:
@@ -272,7 +273,7 @@ def simulated_image(run: RunData, kind: str, index: int = 0, *, prefer_saved: bo
     from comest_bayes.inject.cosmos import load_cosmos
     from comest_bayes.inject.psfmodel import make_psf
 
-    saved = run.file(f"sims/{kind}/image_r{index:05d}.fits")
+    saved = run.file(layout.SIMS_DIR) / layout.realization_image(kind, index)
     if prefer_saved and saved.is_file():
         return fits.getdata(saved).astype(np.float32), "saved"
     truth, _ = _realization_tables(run, kind, index)
@@ -348,15 +349,15 @@ def figure3_data(run: RunData, *, kind: str | None = None, index: int | None = N
     kinds = run.kinds or list(run.config.injection.kinds)
     kind = kind or kinds[0]
     if index is None:
-        done = sorted(run.file(f"sims/{kind}").glob("r[0-9]*.fits"))
+        done = sorted(run.file(layout.SIMS_DIR).glob(layout.realization_glob(kind)))
         if not done:
             raise InputFileError(f"no realization of kind {kind!r} is on disk in {run.path}/sims.")
         index = int(done[0].stem[1:])
-    elif not realization_file(run.file("sims"), kind, index).is_file():
+    elif not realization_file(run.file(layout.SIMS_DIR), kind, index).is_file():
         raise InputFileError(f"realization {kind} #{index} does not exist in this run.")
     base_name = _base_name(run)
     sfi = fits.getdata(run.file(base_name)).astype(np.float32)
-    mask = fits.getdata(run.file("mask.fits")).astype(bool) if run.file("mask.fits").is_file() else None
+    mask = fits.getdata(run.file(layout.MASK)).astype(bool) if run.file(layout.MASK).is_file() else None
     region = choose_region(sfi.shape, size, center)
     notes = []
     observed = None
@@ -368,7 +369,7 @@ def figure3_data(run: RunData, *, kind: str | None = None, index: int | None = N
         notes.append(f"the observed image could not be read again ({exc}); its panel is left empty")
     sim, how = simulated_image(run, kind, index)
     truth, dets = _realization_tables(run, kind, index)
-    det = Table.read(run.file("detection.fits"), mask_invalid=False)
+    det = Table.read(run.file(layout.DETECTION), mask_invalid=False)
     usable = np.asarray(truth["usable"], bool)
     detected = np.asarray(truth["detected"], bool)
     false = np.asarray(dets["false"], bool)
