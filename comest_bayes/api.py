@@ -26,8 +26,9 @@ from pathlib import Path
 from types import MappingProxyType
 from typing import Callable, Mapping
 
-from comest_bayes.errors import ComestError, ConfigError, InputError, InputFileError
+from comest_bayes.errors import ComestError, ConfigError, InputError
 from comest_bayes.io import layout
+from comest_bayes.io.run import Interval, KindSummary, ModelSummary, Run
 
 __all__ = ["run", "fit_completeness", "Run", "KindSummary", "ModelSummary", "Interval", "CompletenessFit",
            "config_from_options", "compute_from_options", "SHORTCUTS", "CATALOGS"]
@@ -123,180 +124,6 @@ def compute_from_options(*, ncpu: int | None = None, executor: str = "processes"
 
 
 # --------------------------------------------------------------------------- typed results
-
-
-@dataclass(frozen=True)
-class Interval:
-    """A posterior quantity (mag): median, 68% and 95% intervals; ``extrapolated`` when outside the injections."""
-
-    median: float
-    lo68: float | None
-    hi68: float | None
-    lo95: float | None = None
-    hi95: float | None = None
-    extrapolated: bool = False
-
-    @classmethod
-    def from_dict(cls, d: Mapping | None) -> "Interval | None":
-        if not d or d.get("median") is None:
-            return None
-        return cls(**{f.name: d.get(f.name) for f in dataclasses.fields(cls) if f.name != "extrapolated"},
-                   extrapolated=bool(d.get("extrapolated")))
-
-
-@dataclass(frozen=True)
-class ModelSummary:
-    """The model fitted to one kind's completeness (or purity), as ``summary.json`` records it.
-
-    ``name`` is the chosen model and ``candidates`` the rungs it was chosen
-    among (empty for a single requested model); ``skipped`` says why no model
-    was fitted (the other fields are then empty).
-    """
-
-    name: str | None
-    requested: str | None = None
-    candidates: tuple = ()
-    m50: Interval | None = None
-    m80: Interval | None = None
-    m90: Interval | None = None
-    sampler: str | None = None
-    converged: bool | None = None
-    warnings: tuple = ()
-    posterior_file: str | None = None
-    skipped: str | None = None
-
-    @classmethod
-    def from_info(cls, d: Mapping | None) -> "ModelSummary | None":
-        """From the model facts of :func:`comest_bayes.io.info.model_facts`."""
-        if not d:
-            return None
-        return cls(name=d.get("name"), requested=d.get("requested"), candidates=tuple(d.get("candidates") or ()),
-                   m50=Interval.from_dict(d.get("m50")), m80=Interval.from_dict(d.get("m80")),
-                   m90=Interval.from_dict(d.get("m90")), sampler=d.get("sampler"), converged=d.get("converged"),
-                   warnings=tuple(d.get("warnings") or ()), posterior_file=d.get("posterior_file"),
-                   skipped=d.get("skipped"))
-
-
-@dataclass(frozen=True)
-class KindSummary:
-    """One source kind's results: binned and model 50% completeness magnitudes, the models, the counts."""
-
-    kind: str
-    m50_binned: float | None
-    model: ModelSummary | None
-    purity_model: ModelSummary | None
-    counts: Mapping
-    mag_range: tuple | None = None
-
-    @property
-    def m50_model(self) -> Interval | None:
-        """The completeness model's image-average m50 (None without a fitted model)."""
-        return None if self.model is None else self.model.m50
-
-
-@dataclass(frozen=True)
-class Run:
-    """A run directory as typed values, read from its records (nothing is recomputed).
-
-    Build it with :meth:`open` (or get it from :func:`run`).  The facts come
-    from :func:`comest_bayes.io.info.run_info`, which ``comest-bayes info``
-    prints; :attr:`info` keeps that whole record.
-
-    Attributes
-    ----------
-    path : Path
-        The run directory.
-    status : str
-        ``finished``, ``running`` or ``partial``.
-    kinds : mapping of str to KindSummary
-        Per source kind, in the run's order.
-    warnings : tuple of str
-        Every warning the run recorded (model fits, failed realizations,
-        the source-free image).
-    info : mapping
-        The full record of :func:`~comest_bayes.io.info.run_info`.
-    """
-
-    path: Path
-    status: str
-    kinds: Mapping
-    warnings: tuple
-    info: Mapping
-
-    @classmethod
-    def open(cls, path) -> "Run":
-        """Read a run directory (finished or partial); :class:`RunDirectoryError` when it is not one."""
-        from comest_bayes.io.info import run_info
-
-        facts = run_info(path)
-        kinds = {}
-        for kind, k in facts["kinds"].items():
-            rng = k.get("mag_range")
-            kinds[kind] = KindSummary(kind=kind, m50_binned=k.get("m50_binned"),
-                                      model=ModelSummary.from_info(k.get("model")),
-                                      purity_model=ModelSummary.from_info(k.get("purity_model")),
-                                      counts=MappingProxyType(dict(k.get("counts") or {})),
-                                      mag_range=None if rng is None else tuple(rng))
-        return cls(path=Path(path), status=facts["status"], kinds=MappingProxyType(kinds),
-                   warnings=tuple(facts["warnings"]), info=MappingProxyType(facts))
-
-    def _kind(self, kind: str) -> KindSummary:
-        if kind not in self.kinds:
-            hint = difflib.get_close_matches(str(kind), list(self.kinds), n=1)
-            raise InputError(f"the run in {str(self.path)!r} has no results for kind {kind!r}"
-                             + (f"; did you mean {hint[0]!r}?" if hint else "")
-                             + f" Its kinds: {list(self.kinds) or 'none yet'}.")
-        return self.kinds[kind]
-
-    def summary(self, kind: str) -> KindSummary:
-        """The results of one source kind (``InputError`` naming the run's kinds when it has none)."""
-        return self._kind(kind)
-
-    def catalog(self, kind: str, name: str = "matched"):
-        """A merged catalog of one kind as an astropy Table.
-
-        ``name`` is one of :data:`CATALOGS`: ``injected`` (every injection),
-        ``matched`` (injection-detection pairs), ``unmatched``, ``false``
-        (detections matching no source) or ``outcomes`` (one row per
-        injection: true magnitude, position, detected).
-        """
-        from astropy.table import Table
-
-        self._kind(kind)
-        if name not in CATALOGS:
-            raise InputError(f"unknown catalog {name!r}; a run holds {', '.join(CATALOGS)} per kind.")
-        path = self.path / layout.catalog(kind, name)
-        if not path.is_file():
-            raise InputFileError(f"{str(path)!r} does not exist; the run may be partial (rerun it to finish).")
-        return Table.read(path)
-
-    def posterior(self, kind: str, quantity: str = "completeness"):
-        """The saved posterior of one kind's completeness (or ``quantity="purity"``) model.
-
-        Returns
-        -------
-        comest_bayes.bayes.posterior.CompletenessPosterior
-        """
-        from comest_bayes.bayes.posterior import CompletenessPosterior
-
-        entry = self._kind(kind)
-        if quantity not in ("completeness", "purity"):
-            raise InputError(f"quantity {quantity!r} must be 'completeness' or 'purity'.")
-        model = entry.model if quantity == "completeness" else entry.purity_model
-        if model is None or model.skipped or not model.posterior_file:
-            why = f" ({model.skipped})" if model is not None and model.skipped else ""
-            raise InputFileError(f"the run in {str(self.path)!r} holds no {quantity} posterior for kind {kind!r}{why};"
-                                 f" was it run with model 'none'?")
-        return CompletenessPosterior.load(self.path / model.posterior_file)
-
-    def summary_json(self) -> dict:
-        """The run's ``summary.json`` as a dict (every number the run wrote)."""
-        import json
-
-        path = self.path / layout.SUMMARY
-        if not path.is_file():
-            raise InputFileError(f"{str(path)!r} does not exist; the run is {self.status}.")
-        return json.loads(path.read_text())
 
 
 # --------------------------------------------------------------------------- run
@@ -456,7 +283,7 @@ def fit_completeness(outcomes, out=None, *, kind: str = "injections", model: str
     import numpy as np
 
     from comest_bayes.bayes.fit import fit_outcome_file
-    from comest_bayes.io.info import model_facts
+    from comest_bayes.io.run import model_facts
     from comest_bayes.bayes.posterior import CompletenessPosterior
 
     log = log or (lambda line: None)

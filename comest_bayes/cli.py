@@ -389,7 +389,8 @@ def _cmd_report(args, log) -> int:
 
 
 def _cmd_info(args, log) -> int:
-    from comest_bayes.io.info import format_info, run_info
+    from comest_bayes.io.info import format_info
+    from comest_bayes.io.run import run_info
 
     info = run_info(args.dir)
     print(dumps(info, indent=2) if args.json else format_info(info))

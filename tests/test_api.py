@@ -229,7 +229,7 @@ def test_the_run_object_holds_summary_json_and_reads_the_run(readme_run):
     assert point.model.m90.median == entry["model"]["m90"]["median"]
     assert dict(point.counts) == entry["counts"] and point.mag_range == tuple(entry["mag_range"])
     assert point.purity_model is not None  # skipped or fitted, it is recorded
-    from comest_bayes.io.info import run_info
+    from comest_bayes.io.run import run_info
 
     assert run.warnings == tuple(run_info(where / "run1")["warnings"])
     # catalogs: every injection is matched or not; the outcome table holds the usable ones

@@ -20,6 +20,7 @@ from comest_bayes.pipeline.stages import ImageOptions, run_pipeline
 from comest_bayes.report.plots import new_axes
 from comest_bayes.report import rundata as RD
 from comest_bayes.report.html import write_report
+from comest_bayes.io.run import Run
 
 FIGURE_RE = re.compile(r'<figure id="fig-([^"]+)"><img alt="[^"]*" src="data:image/png;base64,([A-Za-z0-9+/=]+)">')
 
@@ -189,11 +190,11 @@ def test_measured_versus_true_panel_spans_the_faintest_injection(report_run, rep
 
 def test_band_widths_are_drawn_and_stated_from_the_posterior(report_run, report_figures):
     out, path, _ = report_run
-    run = RD.open_run(out)
+    run = Run.open(out)
     html = path.read_text()
-    for kind in run.kinds:
+    for kind in run.kind_names:
         fig, caption = report_figures[f"ratios_{kind}"]
-        k = run.kind(kind)
+        k = run.kind_entry(kind)
         lo, hi = k["mag_range"]
         mags = np.linspace(lo - 0.3, hi + 0.3, 141)
         band = RD.posterior_band(RD.load_posterior(run, kind, "completeness"), mags, label="x")
@@ -215,8 +216,8 @@ def test_band_widths_are_drawn_and_stated_from_the_posterior(report_run, report_
 
 def test_rerendered_realization_is_the_saved_simulated_image(report_run):
     out = report_run[0]
-    run = RD.open_run(out)
-    kind = run.kinds[0]
+    run = Run.open(out)
+    kind = run.kind_names[0]
     saved = fits.getdata(out / "sims" / kind / "image_r00000.fits")
     image, how = RD.simulated_image(run, kind, 0, prefer_saved=False)
     assert how == "re-rendered"
@@ -226,7 +227,7 @@ def test_rerendered_realization_is_the_saved_simulated_image(report_run):
 
 def test_figure3_markers_are_the_realization_outcomes(report_run):
     out = report_run[0]
-    run = RD.open_run(out)
+    run = Run.open(out)
     d = RD.figure3_data(run, size=200, center=(250, 250))
     assert d.sourcefree.data.shape == (200, 200) and (d.sourcefree.x0, d.sourcefree.y0) == (150, 150)
     assert d.observed is not None and not d.notes

@@ -12,6 +12,7 @@ import json
 import math
 import sys
 from pathlib import PurePath
+from collections.abc import Mapping
 from typing import Any, Callable
 
 __all__ = ["jsonable", "json_float", "dumps"]
@@ -39,7 +40,7 @@ def jsonable(obj: Any, *, fallback: Callable[[Any], Any] | None = None) -> Any:
     # NumPy values can only exist once NumPy is imported; not importing it here keeps `import
     # comest_bayes.config` (and the front door) free of it
     np = sys.modules.get("numpy")
-    if isinstance(obj, dict):
+    if isinstance(obj, Mapping):
         return {str(k): jsonable(v, fallback=fallback) for k, v in obj.items()}
     if isinstance(obj, (list, tuple)):
         return [jsonable(v, fallback=fallback) for v in obj]

@@ -19,6 +19,7 @@ from comest_bayes.lf.model import build_inputs, effective_area, fit_counts
 from comest_bayes.lf.result import LFResult
 from comest_bayes.io.jsonio import dumps
 from comest_bayes.io import layout
+from comest_bayes.io.run import Run
 
 __all__ = ['run_lf']
 
@@ -138,8 +139,7 @@ def run_lf(run_dir, *, kind: str = "point", catalog=None, mag_column: str = "mag
         raise ConfigError(f"--mode must be one of {list(MODES)}, got {mode!r}.")
     if sampler not in SAMPLERS:
         raise ConfigError(f"--sampler must be one of {list(SAMPLERS)}, got {sampler!r}.")
-    if not run.is_dir() or not (run / layout.RUN).is_file():
-        raise InputFileError(f"{str(run)!r} is not a run directory (no {layout.RUN}); run `comest-bayes run` first.")
+    record = Run.open(run)  # a clear error when it is not a run directory
     post_path = run / layout.posterior(kind)
     if not post_path.is_file():
         have = sorted(k for k in _kinds_with_posteriors(run))
@@ -158,8 +158,8 @@ def run_lf(run_dir, *, kind: str = "point", catalog=None, mag_column: str = "mag
     if not cat_path.is_file():
         raise InputFileError(f"catalog {str(cat_path)!r} does not exist.")
     table = _read_catalog(cat_path, mag_column)
-    state = json.loads((run / layout.RUN).read_text())
-    scale = (state.get("image") or {}).get("pixel_scale_arcsec")
+    state = record.state
+    scale = record.image_facts.get("pixel_scale_arcsec")
     if not scale:
         raise InputError("run.json records no pixel scale (image.pixel_scale_arcsec); the area cannot be computed.")
 

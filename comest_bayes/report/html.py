@@ -44,6 +44,8 @@ from comest_bayes.report.plots import figure_png, save_figure
 from comest_bayes.report import rundata as RD
 from comest_bayes.io.rundir import atomic_path
 from comest_bayes.io import layout
+from comest_bayes.io.run import Run
+from comest_bayes.errors import RunDirectoryError
 
 __all__ = ["write_report", "ReportFigure", "lf_figures"]
 
@@ -124,7 +126,7 @@ def _interval(entry: dict | None, fmt: str = "{:.2f}") -> str:
 class _Report:
     """Accumulates HTML parts and figures."""
 
-    def __init__(self, run: RD.RunData, figdir: Path, dpi: int, log: Callable[[str], None]):
+    def __init__(self, run: Run, figdir: Path, dpi: int, log: Callable[[str], None]):
         self.run = run
         self.figdir = figdir
         self.dpi = dpi
@@ -218,13 +220,13 @@ class _Report:
 def _summary_section(r: _Report) -> None:
     run = r.run
     r.h2("summary", "Summary")
-    if run.summary is None:
+    if run.summary_record is None:
         r.note("summary.json is missing: the injection stages of this run have not finished (rerun the same "
                "command to resume); the report shows the stages done so far.")
         return
     rows = []
-    for kind in run.kinds:
-        k = run.kind(kind)
+    for kind in run.kind_names:
+        k = run.kind_entry(kind)
         c = k.get("counts", {})
         model = k.get("model") or {}
         pmodel = k.get("purity_model") or {}
@@ -266,7 +268,7 @@ def _facts_section(r: _Report) -> None:
         ["mask", f"{100 * float(facts.get('masked_fraction', 0.0)):.2f}% of the pixels masked",
          prov.get("mask", "NaN/inf pixels only")],
     ]
-    psf = (run.summary or {}).get("psf") or run.state.get("psf")
+    psf = (run.summary_record or {}).get("psf") or run.state.get("psf")
     if psf:
         where = f"FWHM: {psf.get('fwhm_source', '?')}"
         if psf.get("beta_source"):
@@ -274,7 +276,7 @@ def _facts_section(r: _Report) -> None:
         rows.append(["injected PSF", psf.get("description", psf.get("model", "?")), where])
         for line in psf.get("warnings") or []:
             rows.append(["injected PSF", "warning", line])
-    check = ((run.summary or {}).get("kinds") or {}).get("point", {}).get("size_check")
+    check = ((run.summary_record or {}).get("kinds") or {}).get("point", {}).get("size_check")
     if check and check.get("ratio") is not None:
         rows.append(["point-source size check",
                      f"median flux_radius {check['injected']:.3f} px (injections) vs {check['stars']:.3f} px (stars): "
@@ -295,7 +297,7 @@ def _facts_section(r: _Report) -> None:
         rows.append(["detection", f"{det.get('nsources', '?')} sources with {cfg.backend}, threshold {cfg.thresh} "
                      f"sigma, minarea {cfg.minarea} pixels", f"noise: {(det.get('meta') or {}).get('noisemod', '?')}"])
     r.table(["quantity", "value", "where it came from"], rows)
-    depth = (run.summary or {}).get("depth")
+    depth = (run.summary_record or {}).get("depth")
     if depth:
         hist = depth.get("histogram") or {}
         drows = [["5σ point-source depth (injection PSF, optimal photometry)", _num(depth.get("point_source_5sigma"))],
@@ -338,10 +340,10 @@ def _images_section(r: _Report, center, size: int) -> None:
             r.note(n)
 
 
-def _curve_for(run: RD.RunData, kind: str, quantity: str, mags):
+def _curve_for(run: Run, kind: str, quantity: str, mags):
     """Posterior band from the saved posterior, else from the summary's curve, else None (with a reason)."""
     key = "model" if quantity == "completeness" else "purity_model"
-    entry = run.kind(kind).get(key) or {}
+    entry = run.kind_entry(kind).get(key) or {}
     if not entry.get("name"):
         setting = "fit.model" if key == "model" else "fit.purity_model"
         return None, entry.get("skipped") or f"no {quantity} model was fitted ({setting} = none)"
@@ -361,7 +363,7 @@ def _curve_for(run: RD.RunData, kind: str, quantity: str, mags):
 
 
 def _binned_table(r: _Report, kind: str) -> None:
-    b = r.run.kind(kind).get("binned") or {}
+    b = r.run.kind_entry(kind).get("binned") or {}
     if not b:
         return
     edges = b["mag_edges"]
@@ -387,9 +389,9 @@ def _kind_sections(r: _Report) -> None:
     from comest_bayes.report.plots.completeness import band_caption, ratios_figure
 
     run = r.run
-    depth = RD.depth_lines(run.summary)
-    for kind in run.kinds:
-        k = run.kind(kind)
+    depth = RD.depth_lines(run.summary_record)
+    for kind in run.kind_names:
+        k = run.kind_entry(kind)
         r.h2(f"kind-{kind}", f"Completeness and purity: {kind}")
         lo, hi = k.get("mag_range", [None, None])
         mags = np.linspace(lo - 0.3, hi + 0.3, 141) if lo is not None else None
@@ -416,7 +418,7 @@ def _kind_sections(r: _Report) -> None:
 
 
 def _characteristic_table(r: _Report, kind: str) -> None:
-    k = r.run.kind(kind)
+    k = r.run.kind_entry(kind)
     rows = []
     for q, key in (("completeness", "model"), ("purity", "purity_model")):
         e = k.get(key) or {}
@@ -431,11 +433,11 @@ def _magnitudes_section(r: _Report) -> None:
     from comest_bayes.report.plots.completeness import magnitude_comparison_figure
 
     run = r.run
-    if not run.kinds:
+    if not run.kind_names:
         return
     r.h2("magnitudes", "Measured versus true magnitude")
     pairs = {}
-    for kind in run.kinds:
+    for kind in run.kind_names:
         mm = RD.matched_magnitudes(run, kind)
         if mm is not None:
             pairs[kind] = mm
@@ -443,7 +445,7 @@ def _magnitudes_section(r: _Report) -> None:
         r.note("no matched catalogs (catalogs/<kind>_matched.fits) in this run.")
         return
     col = run.config.matching.mag_column.upper()
-    ranges = {kind: run.kind(kind).get("mag_range") for kind in pairs}
+    ranges = {kind: run.kind_entry(kind).get("mag_range") for kind in pairs}
     ranges = {k: v for k, v in ranges.items() if v and None not in v}
     r.figure("magnitudes", "Measured versus true magnitude of recovered injections",
              f"Density of recovered injections (log colour scale) in measured {col} versus injected magnitude, "
@@ -457,11 +459,11 @@ def _maps_section(r: _Report) -> None:
     from comest_bayes.report.plots.maps import m50_map_figure, ratio_maps_figure
 
     run = r.run
-    if not run.kinds:
+    if not run.kind_names:
         return
     r.h2("maps", "Maps")
     bin_arcmin = run.config.ratios.map_bin_arcmin
-    for kind in run.kinds:
+    for kind in run.kind_names:
         planes = RD.map_planes(run, kind)
         if planes is None:
             r.note(f"{kind}: no binned maps (maps/{kind}_maps.fits).")
@@ -472,7 +474,7 @@ def _maps_section(r: _Report) -> None:
                      "magnitude range (true magnitude for completeness, measured for purity); colour scale 0-1, "
                      "grey cells hold no injections (completeness) or no detections (purity).",
                      lambda comp=comp, pur=pur, kind=kind: ratio_maps_figure(kind, comp, pur, bin_arcmin=bin_arcmin))
-        model = run.kind(kind).get("model") or {}
+        model = run.kind_entry(kind).get("model") or {}
         m50 = RD.m50_map(run, kind)
         if m50 is None:
             if model.get("name"):
@@ -493,10 +495,10 @@ def _model_sections(r: _Report) -> None:
     from comest_bayes.report.plots import new_axes
 
     run = r.run
-    entries = [(kind, q, run.kind(kind).get(key)) for kind in run.kinds
+    entries = [(kind, q, run.kind_entry(kind).get(key)) for kind in run.kind_names
                for q, key in (("completeness", "model"), ("purity", "purity_model"))]
     if not any(e for _, _, e in entries):
-        if run.summary is not None:
+        if run.summary_record is not None:
             r.h2("models", "Models")
             r.note("no completeness or purity model was fitted in this run (fit.model = none): the report shows the "
                    "binned ratios only.")
@@ -625,7 +627,7 @@ def _lf_section(r: _Report) -> None:
 
 
 def _adaptive_section(r: _Report) -> None:
-    ad = (r.run.summary or {}).get("adaptive")
+    ad = (r.run.summary_record or {}).get("adaptive")
     if not ad:
         return
     at_f = ad.get("target") == "f"
@@ -765,7 +767,9 @@ def write_report(run_dir, out=None, *, log: Callable[[str], None] | None = None,
 
     log = log or (lambda s: None)
     t0 = time.perf_counter()
-    run = RD.open_run(run_dir)
+    if not Path(run_dir).is_dir():
+        raise RunDirectoryError(f"{str(run_dir)!r} is not a directory; give the --out directory of a comest-bayes run.")
+    run = Run.open(run_dir)
     out = Path(out) if out is not None else run.path / layout.REPORT
     figdir = run.path / layout.FIGURES_DIR
     figdir.mkdir(exist_ok=True)

@@ -7,19 +7,18 @@ maps, a partial run), so the caller can say what is missing instead of failing.
 
 from __future__ import annotations
 
-import json
 from dataclasses import dataclass, field
-from pathlib import Path
 
 import numpy as np
 from astropy.io import fits
 from astropy.table import Table
 
-from comest_bayes.errors import InputFileError, RunDirectoryError
+from comest_bayes.errors import InputFileError
 from comest_bayes.report.plots.data import BinnedCurve, ChainSamples, Cutout, DepthLine, MapPlane, PosteriorBand
 from comest_bayes.io import layout
+from comest_bayes.io.run import Run
 
-__all__ = ["RunData", "open_run", "binned_curve", "depth_lines", "load_posterior", "posterior_band",
+__all__ = ["binned_curve", "depth_lines", "load_posterior", "posterior_band",
            "chain_samples", "map_planes", "m50_map", "matched_magnitudes", "Figure3Data", "figure3_data",
            "simulated_image", "KEY_PARAMETERS"]
 
@@ -27,87 +26,11 @@ __all__ = ["RunData", "open_run", "binned_curve", "depth_lines", "load_posterior
 KEY_PARAMETERS = ("m50_0", "w", "beta_depth", "beta_size", "A", "floor")
 
 
-@dataclass
-class RunData:
-    """What a run directory holds, read once.
-
-    Attributes
-    ----------
-    path : Path
-        The run directory.
-    state : dict
-        ``run.json`` (fingerprint, stages, image facts, timings).
-    summary : dict or None
-        ``summary.json``; None when the injection stages have not finished.
-    """
-
-    path: Path
-    state: dict
-    summary: dict | None = None
-    _config: object = field(default=None, repr=False)
-
-    def file(self, name: str) -> Path:
-        return self.path / name
-
-    @property
-    def config(self):
-        """The run's :class:`~comest_bayes.config.RunConfig`, rebuilt from ``run.json``."""
-        if self._config is None:
-            from comest_bayes.config import load_config
-
-            cfg = dict(self.state.get("fingerprint", {}).get("config", {}))
-            seed = cfg.pop("seed", 0)
-            self._config = load_config(overrides=cfg, seed=seed)
-        return self._config
-
-    @property
-    def kinds(self) -> list:
-        """Source kinds with results in ``summary.json`` (in run order)."""
-        return list(((self.summary or {}).get("kinds") or {}).keys())
-
-    def kind(self, kind: str) -> dict:
-        return ((self.summary or {}).get("kinds") or {}).get(kind, {})
-
-    @property
-    def image_facts(self) -> dict:
-        return (self.summary or {}).get("image") or self.state.get("image") or {}
-
-
-def open_run(run_dir) -> RunData:
-    """Read ``run.json`` and (if present) ``summary.json`` of a run directory.
-
-    Raises
-    ------
-    RunDirectoryError
-        When ``run_dir`` does not exist or holds no readable comest-bayes run.
-    """
-    path = Path(run_dir)
-    if not path.is_dir():
-        raise RunDirectoryError(f"{str(path)!r} is not a directory; give the --out directory of a comest-bayes run.")
-    run_file = path / layout.RUN
-    if not run_file.is_file():
-        raise RunDirectoryError(f"{str(path)!r} holds no {layout.RUN}, so it is not a comest-bayes run directory; "
-                                f"give the --out directory of a run (comest-bayes run/demo).")
-    try:
-        state = json.loads(run_file.read_text())
-    except (OSError, json.JSONDecodeError) as exc:
-        raise RunDirectoryError(f"{str(run_file)!r} is unreadable ({exc}); the run directory is damaged.") from None
-    if not isinstance(state, dict) or "fingerprint" not in state:
-        raise RunDirectoryError(f"{str(run_file)!r} is not a comest-bayes run record (no fingerprint).")
-    summary = None
-    if (path / layout.SUMMARY).is_file():
-        try:
-            summary = json.loads((path / layout.SUMMARY).read_text())
-        except (OSError, json.JSONDecodeError) as exc:
-            raise RunDirectoryError(f"{str(path / layout.SUMMARY)!r} is unreadable ({exc}).") from None
-    return RunData(path=path, state=state, summary=summary)
-
-
 # --------------------------------------------------------------------------- ratios and curves
 
-def binned_curve(run: RunData, kind: str, quantity: str) -> BinnedCurve | None:
+def binned_curve(run: Run, kind: str, quantity: str) -> BinnedCurve | None:
     """Binned completeness or purity of ``kind`` from ``summary.json``."""
-    binned = run.kind(kind).get("binned")
+    binned = run.kind_entry(kind).get("binned")
     if not binned or quantity not in binned:
         return None
     return BinnedCurve.from_summary(binned, quantity)
@@ -126,12 +49,12 @@ def depth_lines(summary: dict | None) -> list:
     return out
 
 
-def load_posterior(run: RunData, kind: str, quantity: str = "completeness"):
+def load_posterior(run: Run, kind: str, quantity: str = "completeness"):
     """The saved :class:`~comest_bayes.bayes.posterior.CompletenessPosterior`, or None when there is none."""
     from comest_bayes.bayes.posterior import CompletenessPosterior
 
     key = "model" if quantity == "completeness" else "purity_model"
-    entry = run.kind(kind).get(key) or {}
+    entry = run.kind_entry(kind).get(key) or {}
     name = entry.get("posterior_file") or layout.posterior(kind, quantity)
     path = run.file(name)
     if not path.is_file():
@@ -187,9 +110,9 @@ def _map_planes(hdul, name: str, nname: str | None) -> list:
     return planes
 
 
-def map_planes(run: RunData, kind: str) -> tuple[list, list] | None:
+def map_planes(run: Run, kind: str) -> tuple[list, list] | None:
     """Completeness and purity planes of ``maps/<kind>_maps.fits``, or None when absent."""
-    name = (run.kind(kind).get("maps") or {}).get("file") or layout.binned_maps(kind)
+    name = (run.kind_entry(kind).get("maps") or {}).get("file") or layout.binned_maps(kind)
     path = run.file(name)
     if not path.is_file():
         return None
@@ -197,9 +120,9 @@ def map_planes(run: RunData, kind: str) -> tuple[list, list] | None:
         return _map_planes(hdul, "COMPLETENESS", "COMPLETENESS_N"), _map_planes(hdul, "PURITY", "PURITY_N")
 
 
-def m50_map(run: RunData, kind: str) -> tuple[np.ndarray, np.ndarray, float] | None:
+def m50_map(run: Run, kind: str) -> tuple[np.ndarray, np.ndarray, float] | None:
     """``(median, sd, bin_pix)`` of ``maps/<kind>_m50.fits``, or None (model without a spatial term)."""
-    name = (run.kind(kind).get("model") or {}).get("m50_map_file") or layout.m50_map(kind)
+    name = (run.kind_entry(kind).get("model") or {}).get("m50_map_file") or layout.m50_map(kind)
     path = run.file(name)
     if not path.is_file():
         return None
@@ -215,7 +138,7 @@ def _first_column(values) -> np.ndarray:
     return v[:, 0] if v.ndim == 2 else v
 
 
-def matched_magnitudes(run: RunData, kind: str) -> tuple[np.ndarray, np.ndarray] | None:
+def matched_magnitudes(run: Run, kind: str) -> tuple[np.ndarray, np.ndarray] | None:
     """True and measured (``matching.mag_column``) magnitudes of the recovered injections of ``kind``."""
     path = run.file(layout.catalog(kind, "matched"))
     if not path.is_file():
@@ -237,7 +160,7 @@ def _decode(table: Table) -> Table:
     return table
 
 
-def _realization_tables(run: RunData, kind: str, index: int) -> tuple[Table, Table]:
+def _realization_tables(run: Run, kind: str, index: int) -> tuple[Table, Table]:
     from comest_bayes.recover.realization import realization_file
 
     path = realization_file(run.file(layout.SIMS_DIR), kind, index)
@@ -247,11 +170,11 @@ def _realization_tables(run: RunData, kind: str, index: int) -> tuple[Table, Tab
         return _decode(Table(hdul["TRUTH"].data)), _decode(Table(hdul["DETECTIONS"].data))
 
 
-def _base_name(run: RunData) -> str:
+def _base_name(run: Run) -> str:
     return (run.state.get("stages", {}).get("baseline") or {}).get("base") or layout.SFI
 
 
-def simulated_image(run: RunData, kind: str, index: int = 0, *, prefer_saved: bool = True) -> tuple[np.ndarray, str]:
+def simulated_image(run: Run, kind: str, index: int = 0, *, prefer_saved: bool = True) -> tuple[np.ndarray, str]:
     """The simulated image of one realization and how it was obtained.
 
     A saved image (``sims/<kind>/image_rNNNNN.fits``, written with
@@ -294,7 +217,7 @@ def simulated_image(run: RunData, kind: str, index: int = 0, *, prefer_saved: bo
         with warnings.catch_warnings():
             warnings.simplefilter("ignore", FITSFixedWarning)
             wcs = WCS(header, relax=True)
-    choice = (run.summary or {}).get("psf") or run.state.get("psf") or {}  # the run's injection PSF
+    choice = (run.summary_record or {}).get("psf") or run.state.get("psf") or {}  # the run's injection PSF
     psf = make_psf(config.injection, float(facts["fwhm_pix"]), float(facts["pixel_scale_arcsec"]),
                    beta=choice.get("beta"), pixel_integrated=bool(choice.get("pixel_integrated", False)))
     cosmos = load_cosmos(config.injection) if kind == "cosmos" else None
@@ -327,7 +250,7 @@ class Figure3Data:
     notes: list = field(default_factory=list)
 
 
-def figure3_data(run: RunData, *, kind: str | None = None, index: int | None = None, center=None,
+def figure3_data(run: Run, *, kind: str | None = None, index: int | None = None, center=None,
                  size: int = 400) -> Figure3Data:
     """Read the three cutouts and the marker positions of the Figure-3 panels.
 
@@ -346,7 +269,7 @@ def figure3_data(run: RunData, *, kind: str | None = None, index: int | None = N
     from comest_bayes.recover.realization import realization_file
     from comest_bayes.report.plots.images import Markers, choose_region, cut
 
-    kinds = run.kinds or list(run.config.injection.kinds)
+    kinds = run.kind_names or list(run.config.injection.kinds)
     kind = kind or kinds[0]
     if index is None:
         done = sorted(run.file(layout.SIMS_DIR).glob(layout.realization_glob(kind)))
