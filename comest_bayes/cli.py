@@ -1,27 +1,7 @@
-"""The ``comest-bayes`` command line.
+"""The ``comest-bayes`` command line: ``run``, ``demo``, ``report``, ``lf``, ``info`` and ``fit``.
 
-``comest-bayes run IMAGE --out DIR [options]``
-    Run every stage on an image.
-``comest-bayes demo [--out DIR]``
-    Synthesize the built-in demo tile and run every stage on it.
-``comest-bayes report DIR``
-    Write the self-contained HTML report of a run (``DIR/report.html``); ``run``
-    and ``demo`` write it at their end unless given ``--no-report``.
-``comest-bayes lf DIR [--kind K --model M --mag-range LO HI --mode joint|marginal|fixed]``
-    Fit number counts (a luminosity function) to the run's catalog or a user
-    catalog, forward-modelling the completeness posterior and the photometric
-    transfer; results under ``DIR/lf/<name>/`` and in ``summary.json``.
-``comest-bayes info DIR [--json]``
-    What a run holds (finished or partial), from its ``run.json`` and
-    ``summary.json`` alone: input facts, stages done, binned and model m50
-    with intervals, the chosen model, warnings and files.
-
-User mistakes (a missing file, an unreadable header, a run directory holding
-another run or in use by one) are printed as one ``error:`` line without a
-traceback and exit with status 2; an operating-system failure (a full disk, a
-file that cannot be read) or running out of memory is one ``error:`` line
-with the file and the reason, exit status 1.  ``--debug`` shows the
-traceback.
+User mistakes are one ``error:`` line and exit status 2, operating-system failures exit status 1;
+``--debug`` shows the traceback.  The commands and their options: ``docs/usage.md``.
 """
 
 from __future__ import annotations

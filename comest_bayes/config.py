@@ -1,31 +1,11 @@
 """Declarative configuration: documented defaults, a TOML file, CLI overrides.
 
-A run is configured by a :class:`RunConfig`, made of one dataclass per stage
-of the data flow.  Each can be built directly from Python with keyword
-arguments, read from a TOML file whose tables are named after the sections
-(``[detection]``, ``[sourcefree]``), and patched with ``section.key=value``
-overrides from the command line.  Unknown keys and wrongly typed values are
-rejected with a message that names the key, the value received and the fix.
-
-The detection defaults are SExtractor's (``sex -d``), so a user who knows
-SExtractor reads them without translation:
-
-==========================  ==================  ===========================
-comest-bayes key            SExtractor keyword  default
-==========================  ==================  ===========================
-detection.thresh            DETECT_THRESH       1.5 (sigma of the noise)
-detection.minarea           DETECT_MINAREA      5 pixels
-detection.filter            FILTER_NAME         ``default`` (default.conv)
-detection.back_size         BACK_SIZE           64 pixels
-detection.back_filtersize   BACK_FILTERSIZE     3 meshes
-detection.deblend_nthresh   DEBLEND_NTHRESH     32
-detection.deblend_mincont   DEBLEND_MINCONT     0.005
-detection.clean             CLEAN               true
-detection.clean_param       CLEAN_PARAM         1.0
-detection.phot_autoparams   PHOT_AUTOPARAMS     [2.5, 3.5]
-detection.phot_apertures    PHOT_APERTURES      [5.0] (diameters, pixels)
-detection.phot_fluxfrac     PHOT_FLUXFRAC       0.5
-==========================  ==================  ===========================
+A run is configured by a :class:`RunConfig`, made of one dataclass per stage of the data flow.
+Each can be built directly from Python with keyword arguments, read from a TOML file whose tables
+are named after the sections (``[detection]``, ``[sourcefree]``), and patched with
+``section.key=value`` overrides from the command line.  Unknown keys and wrongly typed values are
+rejected with a message that names the key, the value received and the fix.  The detection
+defaults are SExtractor's (the table: ``docs/detection.md``).
 """
 
 from __future__ import annotations

@@ -1,37 +1,8 @@
 """The source-free image (SFI) and the "bright and big" image (BnB).
 
-ComEst (Chiu, Desai & Liu 2016) measures completeness by injecting synthetic
-sources into a version of the observed image from which the detected sources
-have been removed, so that an injection is neither blended with nor mistaken
-for a real source.  Removing a source means replacing its pixels by a draw of
-the sky: ``N(B, sigma)`` with ``B`` the local background level and ``sigma`` the
-local noise.
-
-Which pixels go
----------------
-The segmentation map stops at the detection isophote (1.5 sigma of the noise
-per pixel, after filtering).  Everything outside it, the PSF wings of stars
-and the outskirts of galaxies, stays in the image and leaves a bright ring
-around each replaced patch: ComEst's published code left about +0.5 sigma per
-pixel there.  Every segment is therefore grown by a radius that has a fixed
-part proportional to the seeing and a part proportional to the object's own
-isophotal radius ``sqrt(area / pi)`` (the wings of a bright object reach
-further beyond its isophote):
-
-    r_i = max(dilate * fwhm, dilate_min_pix) + dilate_size * sqrt(area_i / pi)
-
-and optionally each object's Kron ellipse is added.  The defaults come from a
-measurement of the residual flux in rings around the replaced pixels on a
-simulated field with known sky, reported in ``docs/sourcefree.md``.
-
-Which sky
----------
-A background estimated with the sources in the image is biased high (their
-wings and the sources the clipping keeps).  The background and its RMS are
-therefore estimated again with SEP with the replaced pixels masked, and the
-RMS map is recalibrated so that the kept sky pixels have a unit robust
-standard deviation around the new background (SEP's clipped RMS estimator
-reads about 1.5 % low on Gaussian noise).
+Detected sources are replaced by draws of the sky, each segment grown by a radius set by the
+seeing and the object's isophotal size, with the background and noise of the fill estimated
+again without the sources.  The measurement behind the defaults: ``docs/sourcefree.md``.
 """
 
 from __future__ import annotations

@@ -1,30 +1,8 @@
 """Does the fitted model's shape describe the outcomes?  A posterior predictive check by magnitude.
 
-The completeness model's intervals carry the statistical uncertainty of its
-parameters, not the error of its *form*.  With enough injections the form
-dominates: on the demo tile ``logistic_depth`` stops improving at about
-0.01 mag in m50 beyond ~3x10^4 injections while the binned ratio keeps
-improving, and the model's intervals then miss the truth
-(``benchmarks/bench_speed_accuracy.py``).  This check makes that visible in
-every fit.
-
-For magnitude bins ``b`` (the run's ratio bins), with the injections' own
-covariates (so no assumption about the footprint enters), over posterior
-draws ``s``:
-
-* observed detections ``O_b = sum_c k_c`` over the binomial cells ``c`` in ``b``;
-* expected ``E_bs = sum_c n_c f(theta_s; cov_c)``;
-* predictive variance ``V_b = mean_s sum_c n_c f (1 - f) + var_s E_bs``
-  (binomial noise plus the posterior's own uncertainty);
-* ``z_b = (O_b - mean_s E_bs) / sqrt(V_b)`` and ``chi2 = sum_b z_b^2`` over
-  the bins with ``V_b >= 0.25`` (a bin whose prediction is certain to well
-  below one detection carries no information at this level).
-
-Because the parameters were fitted to the same outcomes, ``chi2`` is slightly
-smaller than a chi-square with ``dof`` = number of bins would give: the
-p-value is conservative (a small p is a real misfit).  Below
-:data:`P_WARN` the fit warns, and the binned ratios are the curve to trust
-at that number of injections.
+:func:`shape_check` compares, per magnitude bin, the observed detections with those the
+posterior predicts for the same injections and sums the differences into a chi-square; below
+:data:`P_WARN` the fit warns.  Formulas and measurements: ``docs/bayesian.md`` ("Shape check").
 """
 
 from __future__ import annotations

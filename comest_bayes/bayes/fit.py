@@ -1,26 +1,9 @@
 """Fit the completeness and purity models of one source kind (orchestration of the numerics).
 
-From the per-injection outcome table (and the matched and false detections
-for purity) to a saved :class:`~comest_bayes.bayes.posterior.CompletenessPosterior`
-and the JSON-ready entry that ``summary.json`` gains under
-``kinds.<kind>.model`` and ``kinds.<kind>.purity_model``::
-
-    {
-      "name": "logistic_depth",                   # the fitted (or selected) specification
-      "requested": "auto",
-      "selection": {"table": [...], "chosen", "best", "rule"} | null,
-      "m50": {"median", "lo68", "hi68", "defined_fraction"}, "m80": {...}, "m90": {...},
-      "parameters": {"m50_0": {"median", "lo68", "hi68"}, "w": ..., "A": ..., ...},
-      "curve": {"mag": [...], "median": [...], "lo68", "hi68", "lo95", "hi95"},   # image average
-      "diagnostics": {tau, ess, acceptance, nsteps, converged, warnings, ...},
-      "shape_check": {chi2, dof, p_value, max_abs_z, mag_at_max, bins: [...]},   # comest_bayes.bayes.checks
-      "posterior_file": "posterior/<kind>.npz",
-      "m50_map_file": "maps/<kind>_m50.fits" | null,
-      "n_outcomes": N, "n_cells": G, "seconds": t
-    }
-
-For purity the magnitudes are the measured ones and the "characteristic
-magnitudes" are where purity falls to 50/80/90%.
+From the per-injection outcome table (and the matched and false detections for purity) to a
+saved :class:`~comest_bayes.bayes.posterior.CompletenessPosterior` and the JSON-ready entry that
+``summary.json`` gains under ``kinds.<kind>.model`` and ``kinds.<kind>.purity_model``.  The
+entry's format: ``docs/ratios.md``; the fit itself: ``docs/bayesian.md``.
 """
 
 from __future__ import annotations

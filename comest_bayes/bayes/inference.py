@@ -1,61 +1,9 @@
-r"""Posterior inference for the completeness (and purity) models.
+"""Posterior inference for the completeness (and purity) models.
 
-Three stages, each usable on its own and chained by :func:`fit`:
-
-1. :func:`fit_map` -- the maximum a posteriori (MAP) point, found by a
-   quasi-Newton optimizer (SciPy L-BFGS-B or BFGS) on :math:`-\log p(\theta
-   \mid {\rm data})` with the exact JAX gradient, from several starting points
-   (the model's data-driven ``initial()`` plus jittered copies).
-2. :func:`laplace` -- the Laplace (Gaussian) approximation at the MAP:
-   covariance :math:`(-H)^{-1}` with :math:`H` the Hessian of the log
-   posterior.
-3. :func:`sample_posterior` -- ensemble MCMC with emcee (Foreman-Mackey et
-   al. 2013, PASP 125, 306; the differential-evolution move by default, the
-   affine-invariant stretch move on request) started from the Laplace
-   Gaussian, run in chunks until the chain is long enough by the
-   autocorrelation-time criteria below, or until ``max_steps``, after which a
-   :class:`ConvergenceWarning` gives the numbers.
-
-Everything works in the model's *unconstrained* parameter vector ``theta``
-(shape ``(D,)``); ``model.transform(theta)`` maps to physical parameters.
-
-The model
----------
-Any object with the attributes of the contract of
-:class:`comest_bayes.bayes.model.CompletenessModel` (duck typing): ``names``
-(list of ``D`` str), ``ndim`` (``D``), ``initial() -> (D,)``,
-``log_prob(theta) -> float``, ``value_and_grad(theta) -> (float, (D,))``,
-``log_prob_batch(thetas (W, D)) -> (W,)``, ``hessian(theta) -> (D, D)``,
-optionally ``transform(theta) -> dict`` (used to detect a collapsed width
-``w``).  Invalid parameters give ``-inf`` (never NaN is assumed; NaN is
-treated as ``-inf`` here anyway).
-
-Convergence rules of the sampler
---------------------------------
-After each chunk of steps the integrated autocorrelation time
-:math:`\tau_j` of every parameter is estimated from the whole chain with
-:func:`emcee.autocorr.integrated_time` (windowing constant ``c = 5``, no
-length check: ``tol = 0``).  The burn-in is ``burn = ceil(2 max tau)`` steps
-and the effective sample size of parameter ``j`` is
-
-.. math:: {\rm ESS}_j = n_{\rm walkers}\, (n_{\rm steps} - {\rm burn}) / \tau_j .
-
-Sampling stops when :math:`n_{\rm steps} > 50 \max_j \tau_j` (the length
-emcee's authors recommend for a trustworthy :math:`\tau` estimate) **and**
-:math:`{\rm ESS}_j \ge` ``min_ess`` for every ``j``.  Otherwise it continues
-to ``max_steps`` and then warns (:class:`ConvergenceWarning`) with tau,
-the number of steps, the ESS and the acceptance fraction.  A mean acceptance
-fraction outside ``[0.15, 0.8]`` also warns: the walkers are then either
-stuck (multimodal or badly started posterior) or taking tiny steps.
-
-Seeding
--------
-emcee has no seed argument.  Its generator is set explicitly through the
-initial :class:`emcee.State` (``random_state`` = the state of a
-``np.random.RandomState`` seeded from ``seed``); the walkers' starting
-positions and the MAP jitter come from :func:`comest_bayes.seeding.rng_for`.
-The global NumPy random state is never used, so the same seed gives
-bit-identical samples.
+:func:`fit` chains :func:`fit_map` (the MAP point), :func:`laplace` (the Gaussian approximation
+there) and the posterior draws (:func:`importance_posterior`, or emcee in
+:func:`sample_posterior`), all in the model's unconstrained parameters.  The model contract, the
+sampler's convergence rules and the seeding: ``docs/bayesian.md`` ("Inference").
 """
 
 from __future__ import annotations
@@ -335,7 +283,7 @@ def fit_map(model, *, nstarts: int = 6, seed: int, jitter: float = 0.5, method: 
     Parameters
     ----------
     model : CompletenessModel-like
-        See the module docstring.
+        See ``docs/bayesian.md`` ("Inference") for the contract.
     nstarts : int, default 6
         Number of starts: ``model.initial()`` and ``nstarts - 1`` jittered
         copies ``initial + jitter * N(0, 1)`` (per parameter, in the
@@ -673,7 +621,7 @@ def sample_posterior(model, lap: LaplaceResult, *, seed: int, nwalkers: int | No
     Returns
     -------
     PosteriorSamples
-        See the module docstring for the stopping rule, burn-in and ESS.
+        See ``docs/bayesian.md`` ("Inference") for the stopping rule, burn-in and ESS.
 
     Warns
     -----

@@ -1,30 +1,9 @@
 """Products of a fitted completeness model: curves, characteristic magnitudes, maps, queries.
 
-A :class:`CompletenessPosterior` holds posterior draws of the unconstrained
-parameters of one :class:`~comest_bayes.bayes.spec.ModelSpec`, plus what is
-needed to evaluate the model anywhere on the image: the normalisation of the
-covariates (image shape, reference noise and size) and a coarse map of the
-detection noise (for the depth covariate).  It saves to one ``.npz`` file
-(specification, draws, diagnostics, noise map, footprint sample, WCS) and loads
-back without the outcome table.
-
-Conventions
------------
-Draw-first axis: every query returns an array of shape ``(S, ...)`` with one
-row per posterior draw.  "Image average" means the mean of f over *every*
-unmasked pixel of the image, computed exactly through a :class:`Footprint`:
-the pixels grouped into cells of nearly equal covariates (depth in 0.01-mag
-steps, and for models with a smooth spatial term blocks of 1/16 of the image
-side), each weighted by its number of pixels and placed at its members' mean
-covariates, so the grouping error is second order in the steps (measured in
-the tests: below 1e-4 mag on m50).  Bands are the central 68% and 95%
-intervals over draws.
-
-Queries outside what the injections covered are the model's extrapolation:
-magnitudes outside the injected range (``meta["injected_range"]``) or depths
-outside the injected depths (``meta["depth_range"]``) warn
-(:class:`ExtrapolationWarning`), and :meth:`CompletenessPosterior.summary_magnitudes`
-marks m50/m80/m90 that fall outside the injected range as ``extrapolated``.
+A :class:`CompletenessPosterior` holds the posterior draws of one model with what it needs to be
+evaluated anywhere on the image, and saves to (and loads from) one ``.npz`` file.  Conventions
+(draw-first axis, the exact image average through :class:`Footprint`, extrapolation warnings):
+``docs/bayesian.md``.
 """
 
 from __future__ import annotations

@@ -1,38 +1,8 @@
-r"""Model comparison by leave-one-out cross-validation (PSIS-LOO) on grouped outcomes.
+"""Model comparison by leave-one-out cross-validation on grouped outcomes, and the selection rule.
 
-Grouped PSIS-LOO
-----------------
-The completeness likelihood is a product of Bernoulli terms, one per
-injection.  After exact compression into binomial cells (``n_c`` injections
-in cell ``c`` with identical covariates, ``k_c`` of them detected) every
-detected injection of cell ``c`` has the *same* pointwise log-likelihood
-draws :math:`\log f_c(\theta_s)` and every undetected one the same
-:math:`\log(1 - f_c(\theta_s))`.  Pareto-smoothed importance sampling LOO
-(Vehtari, Gelman & Gabry 2017, Stat. Comput. 27, 1413; Vehtari et al. 2024,
-JMLR 25(72)) treats each observation separately, but its importance ratios
-:math:`1 / p(y_i \mid \theta_s)` depend on the observation only through those
-draws, so identical observations get identical smoothed weights, k-hat and
-:math:`{\rm elpd}_i`.  The leave-one-*injection*-out estimate is therefore
-computed exactly once per group ``g = (cell, outcome)`` and weighted by the
-group size :math:`n_g` (``k_c`` or ``n_c - k_c``):
-
-.. math::
-
-    {\rm elpd}_g = \log \sum_s \tilde w_{gs}\, p_{gs}, \qquad
-    {\rm elpd}_{\rm loo} = \sum_g n_g\, {\rm elpd}_g ,
-
-with :math:`\tilde w_{gs}` the normalized smoothed weights of
-:func:`arviz.psislw` applied to :math:`-\log p_{gs}`.  As in
-:func:`arviz.loo`, :math:`{\rm SE} = \sqrt{N\, {\rm Var}_i({\rm elpd}_i)}`
-over the ``N`` injections (population variance, here weighted by the group
-sizes), :math:`{\rm lppd} = \sum_g n_g \log(\frac1S \sum_s p_{gs})` and
-:math:`p_{\rm loo} = {\rm lppd} - {\rm elpd}_{\rm loo}`.  The result equals
-``arviz.loo`` on the expanded ``(S, N)`` pointwise log-likelihood matrix
-(tested) at a cost that depends on the number of cells, not of injections.
-
-Selection rule
---------------
-See :func:`select_model`.
+:func:`loo_grouped` is PSIS-LOO computed once per (cell, outcome) group, :func:`loo_laplace` its
+Laplace form; :func:`select_model` applies the selection rule.  Derivations and the rule:
+``docs/bayesian.md`` ("Selection rule", "Grouped PSIS-LOO").
 """
 
 from __future__ import annotations
@@ -72,7 +42,7 @@ def _psislw(neg_loglik: np.ndarray, reff: float):
 
 @dataclass
 class LooResult:
-    """Grouped PSIS-LOO of one model (see the module docstring).
+    """Grouped PSIS-LOO of one model (see ``docs/bayesian.md``, "Grouped PSIS-LOO").
 
     Readable as a mapping with the contract's keys ``elpd``, ``se``,
     ``p_loo``, ``khat_max``, ``n_bad_k``.
@@ -143,7 +113,7 @@ def _weighted_sum_se(values: np.ndarray, counts: np.ndarray) -> tuple[float, flo
 
 def loo_grouped(model, theta_samples, *, reff: float = 1.0, max_draws: int | None = None,
                 khat_threshold: float = KHAT_THRESHOLD, warn: bool = True, log_weights=None) -> LooResult:
-    """PSIS-LOO of a binomial-cell model, exact per injection (see the module docstring).
+    """PSIS-LOO of a binomial-cell model, exact per injection (see ``docs/bayesian.md``).
 
     Parameters
     ----------

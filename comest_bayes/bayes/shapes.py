@@ -1,28 +1,8 @@
 """Transition shapes of the flexible completeness rungs (pure JAX, float64, elementwise).
 
-Two pieces, combined by :mod:`comest_bayes.bayes.likelihood` as::
-
-    t = (m - m50(x)) / w(x)                         standardised magnitude (faint = positive)
-    s = S(t; eta)                                   monotone decreasing, S(0) = 0, S'(0) = -1
-    g = (1 + exp(-(s + c(nu))))^(-nu)               generalised logistic (Richards), g(S = 0) = 1/2
-    f = floor + (A - floor) g
-
-* :func:`monotone_spline` is ``S``: ``-S'(t)`` is a positive rate that is
-  piecewise linear between equally spaced knots (``exp(eta_k)`` at knot
-  ``k``) and constant beyond the outer knots, so ``S`` is piecewise quadratic
-  inside and linear outside (logistic tails).  The knot at ``t = 0`` has
-  ``eta = 0`` fixed, which pins the local slope at m50 and keeps ``m50`` and
-  ``w`` identifiable.  All ``eta = 0`` gives ``S(t) = -t``: the logistic is
-  the spline's smoothest member.
-* :func:`richards_logs` is ``log g`` and ``log(1 - g)`` of the generalised
-  logistic with shape ``nu = exp(log_nu)``, shifted by
-  ``c(nu) = -log(2^(1/nu) - 1)`` so that ``g = 1/2`` at ``s = 0`` whatever
-  ``nu``: ``m50`` keeps its meaning.  ``nu = 1`` is the logistic; ``nu > 1``
-  makes the faint-side roll-off slower than the bright side, ``nu < 1`` the
-  reverse.
-
-Every function is written for ``jax.jit`` and ``jax.grad``; branch selections
-use ``jnp.where`` with both branches finite, so no NaN reaches a gradient.
+:func:`monotone_spline` (the spline rung's monotone transition) and :func:`richards_logs` (the
+generalised logistic), written for ``jax.jit`` and ``jax.grad`` with no NaN in a gradient.
+Formulas: ``docs/bayesian.md`` ("Transition shapes of the flexible rungs").
 """
 
 from __future__ import annotations

@@ -1,31 +1,9 @@
 """Declarative specifications of the Bayesian completeness (and purity) models.
 
-A :class:`ModelSpec` says which completeness model to fit, in the notation of
-:mod:`comest_bayes.bayes.likelihood`::
-
-    f(m, x, y) = floor + (A - floor) * g(z),   z = (m50(x, y) - m) / w
-
-* ``link`` chooses ``g``: ``"logistic"`` (``1 / (1 + exp(-z))``), ``"probit"``
-  (the standard normal CDF) or ``"pritchet"`` (``0.5 (1 + z / sqrt(1 + z^2))``,
-  the Pritchet & Kline style function with power-law tails);
-* ``spatial`` chooses the m50 field: ``"none"`` (one number), ``"depth"``
-  (``m50 = m50_0 + beta_depth * d`` with the depth covariate
-  ``d = -2.5 log10(sigma / sigma_ref)``), ``"smooth"`` (``m50_0`` plus a
-  low-order 2-D basis in normalised image coordinates with a shrinkage prior)
-  or ``"depth+smooth"`` (both);
-* ``width_depth`` lets ``log w`` follow the depth too; ``size_covariate`` adds
-  ``beta_size * log10(hlr / hlr_ref)`` to m50 (galaxies);
-* ``plateau`` and ``floor`` are ``"free"`` or ``"fixed"`` (``A = 1``,
-  ``floor = 0``);
-* ``priors`` overrides default priors (see ``models/README.md`` and
-  :data:`DEFAULT_PRIORS`);
-* ``candidates`` makes the spec a *selection* spec (such as ``auto``): the
-  named specs are fitted, simplest first, and the model selection picks one.
-
-Specifications are TOML files.  The ones shipped with the package live in the
-top-level ``models/`` folder of the repository, installed as the package
-``comest_bayes.models``; :func:`load_spec` finds them by name, or reads any
-TOML file by path.  The file format is documented in ``models/README.md``.
+A :class:`ModelSpec` says which model to fit (link, spatial term, width and size terms, plateau
+and floor, priors, or the candidates of a selection); :func:`load_spec` reads one by name from
+the shipped ``models/`` or from any TOML file.  The fields: ``docs/bayesian.md``
+("Specifications"); the file format: ``models/README.md``.
 """
 
 from __future__ import annotations

@@ -1,22 +1,8 @@
-"""The detection catalog: one column schema for every detection backend.
+"""The detection catalog: one column schema (:data:`DETECTION_COLUMNS`) for every detection backend.
 
-Both backends (SEP and the SExtractor binary) produce an
-:class:`astropy.table.Table` with exactly the columns of
-:data:`DETECTION_COLUMNS`, in that order, with units and descriptions, so
-everything downstream (matching, ratios, the completeness model) is written
-once.
-
-Conventions
------------
-* Pixel coordinates are **0-based** (numpy / SEP convention: the centre of
-  the first pixel is 0.0).  SExtractor's ``X_IMAGE`` is 1-based; the
-  SExtractor backend subtracts 1.
-* Magnitudes are ``zeropoint - 2.5 log10(flux)``; sources with non-positive
-  flux get NaN magnitudes (SExtractor writes 99).
-* ``flags`` follows SExtractor's FLAGS bits: 1 aperture photometry affected
-  by masked pixels, 2 deblended from a blend, 4 at least one pixel saturated,
-  8 touches the image border, 16 aperture truncated by the border, 64
-  deblending overflow.
+Both backends produce an :class:`astropy.table.Table` with exactly these columns, so everything
+downstream is written once.  Conventions (0-based pixels, NaN magnitudes, SExtractor's flag
+bits): ``docs/detection.md``.
 """
 
 from __future__ import annotations

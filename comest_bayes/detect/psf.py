@@ -1,53 +1,10 @@
-"""The seeing FWHM, measured from the stars on the image.
+"""The seeing FWHM, measured from the stars on the image, and the PSF that is injected.
 
-The injections are convolved with a PSF of the image's FWHM and the matching
-radius is a multiple of it, so when the user gives no ``--fwhm`` it is
-measured here, in three steps:
-
-1. **Star selection** from the detection catalog: unflagged sources (no
-   saturated, blended, edge-touching, masked or truncated ones) with a high
-   AUTO signal-to-noise and a low ellipticity, lying on the *stellar locus*:
-   the tight sequence of the smallest ``flux_radius`` at all magnitudes.  The
-   locus is the smallest-radius significant peak of the distribution of
-   ``ln(flux_radius)`` of those bright sources; galaxies spread above it.
-2. **Profile fits**: every selected star's stamp is fitted by least squares
-   with a circular Moffat profile integrated over the pixels (free centre,
-   flux, FWHM, beta and a constant residual sky; neighbours' pixels left
-   out).
-3. **Checks that they are stars**: stars share one PSF, so at least
-   ``min_stars`` fitted FWHMs must agree within +-3 %, and the stars' weighted
-   ellipticities must scatter about their common value no more than noise and
-   mild PSF variation allow.  The FWHM of the image is the sigma-clipped median
-   of the FWHMs around the densest such cluster.
-
-:func:`estimate_fwhm` raises :class:`~comest_bayes.errors.InputError`
-asking for ``--fwhm`` on an image without stars; a run then falls back on
-the header (:func:`measure_seeing`): the keywords of
-:data:`HEADER_SEEING_KEYWORDS` (DECam's ``FWHM`` in pixels, CASU's
-``SEEING`` in pixels, ``PSF_FWHM``, SExtractor's ``FWHM_IMAGE`` and
-``FWHM_WORLD``), in the unit their comment names, and checked against the
-sizes of the image's bright detections (:func:`seeing_from_header`).  Only
-when that fails too does the run stop, with an error listing every attempt.
-
-The injected PSF (:func:`injection_psf`) is the fitted one: the Moffat of
-the fitted FWHM *and beta*, integrated over the pixel as in the fits; a beta
-at a bound of :data:`BETA_RANGE` is warned about.  A FWHM from ``--fwhm`` or
-the header is that of the effective PSF; the stars' beta is used with it
-when they could be fitted, else beta = 3.  :func:`point_size_check` compares
-the sizes the detector measures on the injected point sources and on the
-stars.  The checks are statistical: an image holding only
-galaxies of very similar, barely resolved sizes can still pass them (2 of 20
-simulated star-free fields did), so the ``method`` sentence reports the locus
-used.
-
-Moffat profile (Moffat 1969, A&A 3, 455), with ``alpha`` the core width::
-
-    I(r) = F (beta - 1) / (pi alpha^2) * (1 + (r / alpha)^2)^(-beta)
-    FWHM = 2 alpha sqrt(2^(1/beta) - 1)
-
-A Gaussian PSF is the limit beta -> infinity; the fits allow beta up to the
-upper end of :data:`BETA_RANGE` (100), where a Moffat matched to a Gaussian's
-curvature at the centre has a FWHM only 0.2 % larger than the Gaussian's.
+:func:`estimate_fwhm` selects stars on the stellar locus, fits them with a pixel-integrated
+Moffat and checks that they share one PSF; :func:`measure_seeing` falls back on the header
+(:func:`seeing_from_header`); :func:`injection_psf` builds the injected PSF and
+:func:`point_size_check` compares injections with stars.  Algorithm, keywords and the Moffat
+profile: ``docs/detection.md`` ("Measuring the seeing").
 """
 
 from __future__ import annotations
@@ -310,7 +267,7 @@ def _locus_peak(logr: np.ndarray, min_members: int) -> float | None:
 
 def select_stars(catalog, *, shape=None, saturation_flagged: bool = True, snr_min: float = 20.0,
                  max_ellipticity: float = 0.3, min_stars: int = 5) -> StarSelection:
-    """Star candidates of a detection catalog (see the module docstring).
+    """Star candidates of a detection catalog (see ``docs/detection.md``, "Measuring the seeing").
 
     Parameters
     ----------

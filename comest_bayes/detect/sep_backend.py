@@ -1,31 +1,9 @@
 """Source detection with SEP, keeping SExtractor's semantics.
 
-The same function runs on the observed image and, later, on every simulated
-image, so the injection-recovery measurement uses an identical detector.
-
-Threshold semantics
--------------------
-SExtractor convolves the background-subtracted image with a *normalised*
-kernel and keeps pixels whose filtered value exceeds ``DETECT_THRESH`` times
-the noise sigma of the *unfiltered* image.  SEP does exactly this with
-``filter_type="conv"``; its default ``"matched"`` filter instead divides by the
-noise of the filtered image when a per-pixel error array is passed, which
-changes what the threshold means (a 1.5-sigma "matched" threshold is a much
-deeper cut) and is far slower on large images.  We therefore always call
-SEP with ``filter_type="conv"`` and an explicit noise map.
-
-Fast path for injection realizations
-------------------------------------
-A realization re-detects on a private, freshly rendered copy of the base
-image and needs only the catalog.  :func:`detect_array` then takes
-``segmentation=False`` (SEP builds no segmentation map), ``inplace=True``
-(the background is subtracted in the caller's float32 array, and in the
-``background`` noise mode the background-RMS map is used as the noise map
-without a copy) and ``check_finite=False`` (the caller checked the base image
-once; injected stamps are finite).  At 8192 x 8192 pixels every full-size
-float32 array is 256 MB: the arrays not made took a realization worker's peak
-memory from 2.3 to 1.7 GB (``benchmarks/README.md``).  The catalog is the
-same as on the default path (tested to 1e-6).
+The same function runs on the observed image and on every simulated image, so the
+injection-recovery measurement uses an identical detector.  SEP is always called with
+``filter_type="conv"`` and an explicit noise map (SExtractor's threshold); the threshold
+semantics and the fast path for realizations: ``docs/detection.md``.
 """
 
 from __future__ import annotations

@@ -1,36 +1,9 @@
 """Adaptive injection design: where the next batch of injections teaches the curve the most.
 
-Pure numerics (no I/O).  A *design* is a density over the injected magnitude
-range, piecewise constant on fine bins, from which a batch's magnitudes are
-drawn.  The first batches (the pilot) use the uniform design of the
-published method; each later design is built from the current posterior of
-the image-average completeness curve:
-
-* For a Bernoulli outcome ``y`` at magnitude ``m``, the linearised one-step
-  reduction of the posterior variance of a quantity ``Q`` is
-  ``Cov(Q, f(m))^2 / Var(y)`` with ``Var(y) = p(m) (1 - p(m))`` and
-  ``p(m)`` the posterior mean of ``f(m)`` (the law of total variance:
-  ``E[f(1-f)] + Var f = p(1-p)``).  Posterior draws give both terms.
-* ``target="m50"``: ``Q`` is the image-average m50.  ``target="curve"``:
-  the sum of the reductions of ``Var f(m')`` over the magnitudes ``m'``
-  where the posterior-median curve lies between 0.05 and 0.95 (the
-  transition), i.e. the integrated posterior variance of the curve.
-  ``target="f"``: the sum of the reductions of ``Var f(m_j)`` at the
-  magnitudes ``m_j`` the user chose (e.g. the limits of a catalog cut).
-* The batch density is proportional to that gain (a batch spreads over the
-  informative region instead of piling onto its maximum), mixed with a
-  uniform share (default 15%) so the plateau, the floor and any surprise
-  outside the transition stay measured.
-
-Why this leaves the inference valid: the likelihood of every injection is
-``f(m_i, x_i)^{y_i} (1 - f)^{1 - y_i}`` *conditional on* its magnitude and
-position, and a design that depends on earlier outcomes (and on seeded
-random draws) only chooses which ``m_i`` are observed; the design
-probabilities do not involve the unknown curve, so they factor out of the
-likelihood (the design is ignorable).  The binned ratios stay unbiased per
-bin, but bins far from m50 receive fewer injections and have wider
-binomial intervals.  The photometric transfer of the LF model is a
-distribution conditional on the true magnitude, so it is unaffected.
+Pure numerics (no I/O): a design is a density over the injected magnitude range, piecewise
+constant on fine bins, built from posterior draws of the image-average completeness curve
+(:func:`variance_reduction`, :func:`design_from_draws`).  The targets, the gain and why the
+inference stays valid: ``docs/adaptive.md``.
 """
 
 from __future__ import annotations
@@ -179,7 +152,7 @@ def variance_reduction(grid, curves, *, target: str = "m50", m50=None, magnitude
     Returns
     -------
     ndarray (G,)
-        ``Cov(Q, f(m))^2 / (p (1 - p))`` (see the module docstring); 0 where
+        ``Cov(Q, f(m))^2 / (p (1 - p))`` (see ``docs/adaptive.md``); 0 where
         ``p`` is 0 or 1.
     """
     if target not in TARGETS:

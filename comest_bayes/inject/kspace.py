@@ -119,7 +119,7 @@ def exponential_k(ksq: np.ndarray) -> np.ndarray:
 def buldisk_k(ksq: np.ndarray, bulge_fraction, table: RadialKTable | None = None) -> np.ndarray:
     """Fourier transform of a circular unit ``buldisk`` source (half-light radius 1, flux 1).
 
-    ``B F_deV(k) + (1 - B) F_exp(k)`` (see the module docstring).
+    ``B F_deV(k) + (1 - B) F_exp(k)`` (see ``docs/sources.md``).
 
     Parameters
     ----------

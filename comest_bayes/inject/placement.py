@@ -1,46 +1,9 @@
 """Where synthetic sources are put: how many, and at which pixel positions.
 
-Pure functions of a shape, an optional mask and a random generator; no I/O.
-
-Conventions
------------
-* Positions are **0-based, continuous pixel coordinates**: the centre of the
-  first pixel is ``(0.0, 0.0)`` and pixel ``i`` covers ``[i - 0.5, i + 0.5)``.
-  The pixel a position falls on is ``floor(x + 0.5)``.
-* The placement region is the image minus a border of ``border_pix`` pixels:
-  ``x`` in ``[border_pix - 0.5, nx - 0.5 - border_pix)``, likewise ``y``.
-* **How many.**  :func:`draw_count` draws ``N ~ Poisson(density * A)`` where
-  ``A`` is the area (arcmin^2) of the whole placement region, masked pixels
-  included, and positions are spread over that whole region.  The injections
-  whose centre lands on an unmasked pixel therefore form a Poisson sample of
-  mean ``density * (unmasked area)`` -- the configured density per arcmin^2 of
-  *unmasked* area -- and those landing on masked pixels are kept but flagged
-  (``Placement.masked``) so that the ratios can exclude them.
-* **Minimum separation.**  No two positions are closer than ``min_sep_pix``.
-  If the requested number cannot be placed (the density is too high for the
-  separation), a :class:`UserWarning` is issued, as many as possible are
-  placed, and ``Placement.complete`` is False with an explanation in
-  ``Placement.message``.
-
-Methods
--------
-``uniform``
-    Uniform random positions with a hard minimum separation ("dart throwing"):
-    candidates are drawn in batches; a candidate closer than ``min_sep_pix`` to
-    an already accepted position is rejected, and of two candidates of the same
-    batch closer than that, the later one is rejected.  A k-d tree
-    (:class:`scipy.spatial.cKDTree`) makes this ~O(n log n): 20,000 positions
-    on an 8192x8192 image take a few tens of milliseconds.
-``grid``
-    A grid of cells of the image's aspect ratio with at least ``n`` cells;
-    ``n`` cells are chosen at random and each gets one position, jittered
-    uniformly within ``(cell - min_sep_pix) / 2`` of the cell centre, so
-    neighbours in adjacent cells stay ``min_sep_pix`` apart.
-``halton``
-    The scrambled 2-D Halton sequence (:class:`scipy.stats.qmc.Halton`, seeded
-    from ``rng``), which covers the image more evenly than uniform random
-    points; points closer than ``min_sep_pix`` to an earlier point of the
-    sequence are skipped and the sequence continued.
+Pure functions of a shape, an optional mask and a random generator; no I/O.  :func:`draw_count`
+draws the Poisson number, :func:`place_sources` the positions (``uniform``, ``grid`` or
+``halton``, with a minimum separation).  Conventions and methods: ``docs/injection.md``
+("Placement").
 """
 
 from __future__ import annotations
@@ -140,7 +103,7 @@ def draw_count(density: float, shape, pixel_scale: float, rng: np.random.Generat
     """Poisson-drawn number of injections for ``density`` per arcmin^2.
 
     The mean is ``density`` times the area of the whole placement region
-    (masked pixels included; see the module docstring for why this gives the
+    (masked pixels included; see ``docs/injection.md`` for why this gives the
     configured density on the unmasked area).
 
     Parameters
@@ -249,7 +212,7 @@ def place_sources(n: int, shape, rng: np.random.Generator, *, mask=None, method:
         True on unusable pixels.  Positions are not avoided there; they are
         flagged in ``Placement.masked``.
     method : {"uniform", "grid", "halton"}
-        See the module docstring.
+        See ``docs/injection.md`` ("Placement").
     min_sep_pix : float
         Minimum distance between any two positions, pixels (0 = none).
     border_pix : float

@@ -69,7 +69,7 @@ def draw_parameters(kind: str, n: int, *, config: InjectionConfig, mag_range, rn
     Parameters
     ----------
     kind : str
-        Source kind (see the module docstring).
+        Source kind (see ``docs/sources.md``).
     n : int
         Number of sources.
     config : InjectionConfig

@@ -18,7 +18,7 @@ from comest_bayes.inject.cosmos import CosmosSample
 
 __all__ = ["sersic_b", 'TRUNC_HLR', 'TRUNC_TAIL', 'SERSIC_N_STEP', 'MAX_SERSIC_INDICES', 'SourceProfile', 'sersic_index_grid', 'sersic_truncation', 'sersic_enclosed_radius', 'bulge_disk_components', 'source_profile']
 
-#: Sersic profiles are truncated at this many half-light radii (see the module docstring).
+#: Sersic profiles are truncated at this many half-light radii (see ``docs/sources.md``).
 TRUNC_HLR = 8.0
 #: ...when their untruncated light beyond it exceeds this fraction.
 TRUNC_TAIL = 1e-4
@@ -224,7 +224,7 @@ def source_profile(kind: str, *, flux: float, hlr_arcsec: float = np.nan, q: flo
     flux : float
         Total flux, image units.
     hlr_arcsec, q, pa_deg, bulge_fraction, sersic_n, cosmos_index
-        The truth columns of the same names (see the module docstring).
+        The truth columns of the same names (see ``docs/injection.md``).
     cosmos : CosmosSample, optional
         Required for ``kind="cosmos"``.
     fraction : float

@@ -1,90 +1,9 @@
 """Injection: the truth table of one realization, and its rendering into an image.
 
-Two pure steps, each a function of arrays and an explicit random state:
-
-* :func:`make_truth` draws *what* goes *where*: the number of injections,
-  their positions (:mod:`comest_bayes.inject.placement`) and their parameters
-  (:mod:`comest_bayes.inject.population`), as an :class:`astropy.table.Table`;
-* :func:`render_truth` draws those sources with GalSim into a copy of a base
-  image (the source-free or bright-and-big image) and returns it with the
-  truth table updated by per-object flags.
-
-Truth table (:data:`TRUTH_COLUMNS`)
------------------------------------
-===============  =====  ==============================================================
-column           unit   meaning
-===============  =====  ==============================================================
-injection_id     -      0..n-1, unique within the realization
-kind             -      point, buldisk, sersic, cosmos or observed
-x, y             pix    0-based position of the light centroid, continuous, exactly as
-                        drawn (the centre of the first pixel is 0.0)
-ra, dec          deg    sky position of (x, y); NaN without a WCS
-mag              mag    injected magnitude
-flux             image  total flux, ``10**(-0.4 * (mag - zeropoint))``
-hlr_arcsec       arcsec circularised half-light radius sqrt(a b) (NaN: point, cosmos)
-q                -      axis ratio b/a (NaN: point, cosmos)
-pa_deg           deg    position angle (see ``docs/sources.md``; NaN: point)
-bulge_fraction   -      bulge flux fraction (buldisk; else NaN)
-sersic_n         -      Sersic index (sersic, observed; else NaN)
-cosmos_index     -      row of the COSMOS catalog (cosmos; else -1)
-masked           -      centre on a masked pixel: excluded from the ratios
-flag             -      bits: 1 centre masked, 2 stamp partly or wholly off the image,
-                        4 drawing failed (the source is absent from the image)
-local_noise      image  noise sigma at the centre pixel (only with ``noise=``)
-===============  =====  ==============================================================
-
-Table ``meta`` holds finite scalars and strings only (FITS-header friendly;
-0 stands for "not given"): kind, counts, placement outcome, magnitude range,
-zero point, pixel scale, FWHM, PSF, fitted ``observed`` population, and after
-rendering the timing and failure counts.
-
-Rendering
----------
-Every source is drawn into its own square stamp of half-size
-``h = ceil(sqrt(R_src^2 + R_psf^2) + 1)`` pixels, where ``R_src`` (from the
-profile, along its major axis) and ``R_psf`` (from the PSF's growth curve)
-enclose ``flux_fraction`` (default 99.5%) of their light; the overlapping part
-of the stamp is added to the image (a stamp partly off the image sets flag 2;
-wholly off: flag 2 and nothing is drawn).  ``R_psf`` is capped at
-:data:`MAX_PSF_RADIUS_PIX` (with a warning) for PSFs with extreme wings.
-Measured: the stamps hold >= 99.8% of a point source's light and more of a
-galaxy's; of the light beyond, the FFT folds back onto the stamp edges up to
-~0.2% of the flux (GalSim's own FFT drawing folds in the same way), so a
-stamp sums to the flux within 0.1-0.2%.
-
-The stamp is the PSF-convolved source sampled at pixel centres, as GalSim's
-``Convolve([source, psf]).drawImage(method='no_pixel')`` draws it, but the
-PSF's Fourier transform is computed once per FFT size and reused
-(:class:`StampRenderer`; GalSim's ``drawFFT_makeKImage`` documentation
-suggests this): per source only the source's transform is drawn
-(:meth:`galsim.GSObject.drawKImage`), multiplied by the PSF's and by the phase
-of the sub-pixel offset, and inverse-transformed.  For bulge+disk galaxies
-and a Moffat PSF this is ~4 times faster than ``drawImage`` (whose Moffat
-k-space evaluation dominates) and agrees with it to < 1e-3 of the peak
-(tested).  ``'no_pixel'`` is right because the PSF is the *effective* PSF (see
-``docs/sources.md``).  The source profile is mapped to pixels with
-the local Jacobian of the WCS at its position (or the pixel scale); the PSF
-is defined in pixels (its FWHM was measured in pixels).
-
-Batched drawing: ``point`` and ``buldisk`` stamps
-(:data:`comest_bayes.inject.kspace.BATCHED_KINDS`) skip GalSim per source.  They
-are grouped by FFT size, and each group is drawn in chunks with NumPy on the
-same ``k`` grid as above: the source's transform (analytic exponential disk,
-de Vaucouleurs bulge interpolated in a table built once from GalSim; see
-:mod:`comest_bayes.inject.kspace`), times the PSF's, times the shift phase, folded
-as GalSim folds, and one batched inverse real FFT per chunk
-(:meth:`StampRenderer.batch_grid`, :meth:`StampRenderer.draw_batch`).  The
-stamps agree with the per-source path to ~1e-6 of their peak (tested) and
-their flux is the same.  The other kinds, sources with parameters outside
-the batched model's domain, and PSFs with power beyond the Nyquist frequency
-take the per-source path.  Stamps are added in a fixed order (batched groups
-by FFT size, then the rest, each by injection index), so the image and its
-photon noise depend only on the truth and the seed.
-
-Photon noise: when ``gain`` (e-/image unit) is given and
-``config.photon_noise`` is true, each stamp ``s`` receives
-``Poisson(gain * s) / gain - s``: zero mean, variance ``s / gain`` -- the
-source's own shot noise on top of the base image's noise.
+:func:`make_truth` draws what goes where (columns :data:`TRUTH_COLUMNS`); :func:`render_truth`
+draws those sources with GalSim (or batched in k-space with NumPy) into a copy of a base image,
+with optional photon noise.  The truth table, stamp sizes, FFT drawing and photon noise:
+``docs/injection.md`` ("The truth table and its rendering").
 """
 
 from __future__ import annotations
@@ -747,8 +666,8 @@ def render_truth(base_image, truth: Table, *, psf, config: InjectionConfig, pixe
     flux_fraction : float
         Light fraction the stamps are sized to enclose.
     batched : bool
-        Draw ``point`` and ``buldisk`` stamps in batches (default; see the
-        module docstring).  False draws every stamp with GalSim, one by one.
+        Draw ``point`` and ``buldisk`` stamps in batches (default; see
+        ``docs/injection.md``).  False draws every stamp with GalSim, one by one.
 
     Returns
     -------
@@ -877,7 +796,7 @@ def render_truth(base_image, truth: Table, *, psf, config: InjectionConfig, pixe
 
 def _draw_batched(image, renderer: StampRenderer, *, kinds, finite, flux, x, y, ix, iy, hlr, q, pa, bf, jac, smin,
                   r_psf: float, flux_fraction: float, flag, drawn, noise_rng, gain) -> np.ndarray:
-    """Draw the batchable sources (see the module docstring); returns which rows it took.
+    """Draw the batchable sources (see ``docs/injection.md``); returns which rows it took.
 
     Updates ``flag`` (off-image bit), ``drawn`` and ``image`` in place.  Rows
     it does not take (other kinds, parameters outside the model's domain,

@@ -1,97 +1,8 @@
-"""Reading an observed image and its companions (weight map, mask).
+"""Reading an observed image and its companions (weight map, mask): the pipeline's I/O boundary.
 
-This is the I/O boundary of the pipeline: everything here validates, and
-everything after it may assume a valid :class:`ImageData`.  Every check runs
-before any output is written.
-
-What is handled
----------------
-* any HDU (``hdu=None`` picks the first HDU holding a 2-D image, so a
-  tile-compressed image in HDU 1 is found); an HDU whose extra axes all have
-  length 1 (``(1, ny, nx)``) is read as 2-D; a real cube is refused with the
-  way to extract a plane;
-* big-endian FITS data are converted to native-endian float32 (SEP refuses
-  non-native byte order);
-* NaN and infinite pixels are masked (and set to 0 so no NaN reaches SEP);
-* a celestial WCS (TAN, TPV, ZPN, SIP, ... whatever astropy/wcslib reads); the
-  pixel scale is measured from the WCS at the image centre, so distortion
-  terms are included.  IRAF's TNX and ZPX, whose distortion astropy cannot
-  evaluate, are read as plain TAN / ZPN with a warning that says so;
-* astropy's header and WCS warnings are caught and turned into one line each
-  (harmless date and unit fixes are dropped);
-* the zero point, the gain and the units by the rules below; saturation from
-  the first of :data:`SATURATION_KEYWORDS`;
-* a weight map as inverse variance, RMS or variance, turned into a noise-sigma
-  map; non-positive weights are masked;
-* a mask file (non-zero = bad, or ``mask_bits`` to select bits).
-
-Every missing fact (pixel scale, zero point) and every data problem found
-(companion shapes, an all-masked or constant image) is reported together in
-one :class:`~comest_bayes.errors.InputError`.
-
-Zero point
-----------
-``zp=`` wins.  Otherwise the candidates, in this order, are the header
-keywords :data:`ZP_KEYWORDS` (image header, then primary), then zero points
-that follow from the units:
-
-* ``MAGZPT`` is per second (the UKIDSS/VISTA and DECam convention): on an
-  image that is not per second (``BUNIT`` not ``.../s``) and has ``EXPTIME``
-  it becomes ``MAGZPT + 2.5 log10(EXPTIME)``; without ``EXPTIME`` it is taken
-  per image unit, with a warning.  Every other keyword is per image unit.
-* ``BUNIT`` in a flux unit gives the AB zero point (3631 Jy is 0 mag):
-  nanomaggies 22.5, maggies 0, Jy 8.90, mJy 16.40, uJy 23.90, nJy 31.40;
-  ``MJy/sr`` gives ``-2.5 log10(PIXAR_SR * 1e6 / 3631)`` with the pixel solid
-  angle from ``PIXAR_SR``, else ``PIXAR_A2``, else the WCS pixel scale
-  (JWST: 28.03 for the 0.0308" NIRCam pixels); ``DN/s`` with ``PHOTMJSR`` the
-  same times ``PHOTMJSR``.
-* HST's ``PHOTFLAM``/``PHOTPLAM`` give the AB zero point of one count per
-  second, ``-2.5 log10(PHOTFLAM) - 5 log10(PHOTPLAM) - 2.408``, plus
-  ``2.5 log10(EXPTIME)`` when the image is in counts or electrons (not per
-  second).
-
-The first candidate is used; any other that differs by more than
-:data:`ZP_AGREEMENT` mag is named in a warning.  The convention used is
-recorded (:attr:`ImageData.zeropoint_convention`).
-
-A zero point is *implausible*, and warned about (it is still used), when
-
-* it puts the sky noise of one pixel, ``zp - 2.5 log10(sigma_sky)``, outside
-  :data:`PIXEL_DEPTH_RANGE` (10-40 mag; real images run from about 16, 2MASS,
-  to 34, JWST).  This rule needs no units: 0 is fine for an image in maggies,
-  whose sky noise is ~1e-11, and 22.5 for nanomaggies;
-* the image is in counts or electrons (``BUNIT``) and the zero point lies
-  outside :data:`COUNTS_ZP_RANGE` (10-40);
-* ``BUNIT`` is a flux unit whose AB zero point differs from it by more than
-  :data:`FLUX_ZP_TOLERANCE` mag (2.5, room for Vega zero points).
-
-Gain
-----
-The gain, in electrons per image unit, sets the photon noise added to the
-injections (and the Poisson term of the detector's flux errors).  A detector
-``GAIN`` keyword (e-/ADU) only means that for an image in ADU, so:
-
-* ``gain=`` (``--gain``) is used as given (with a warning if the checks below
-  fail);
-* ``BUNIT`` electrons: 1; electrons per second: ``EXPTIME``;
-* ``BUNIT`` ADU/DN/counts: the header gain; per second: gain x ``EXPTIME``;
-* ``BUNIT`` a flux unit (maggies, Jy, MJy/sr, ...): a detector gain does not
-  apply; it is rejected;
-* no ``BUNIT``: the header gain, taken to be per image unit.
-
-The result is checked against the image itself.  The sky noise in electrons,
-``sigma_sky x gain``, cannot be below one electron (the image would then be
-quieter than a single photo-electron); and where the sky was not subtracted
-(level >= :data:`SKY_MIN_SIGMAS` sigma) its Poisson noise measures the
-effective gain, ``g_eff = level / sigma^2``, which must agree within a factor
-:data:`GAIN_TOLERANCE` (read noise lowers g_eff, resampling raises it).  A
-header gain that fails is replaced by ``g_eff`` when the sky gives one, and
-dropped otherwise.  When nothing gives a gain, no photon noise is added: a
-wrong gain can erase every injection, while leaving out the sources' own
-photon noise only matters for sources far above the sky, which are detected
-anyway; ``g_eff`` is then only reported, as a suggestion for ``--gain``.  The
-decision (value, source, reason, the header and measured values) is
-:attr:`ImageData.gain_decision`.
+Everything here validates, and everything after it may assume a valid :class:`ImageData`; every
+check runs before any output is written.  What is handled: ``docs/detection.md`` ("Reading the
+image"); the zero-point, gain and seeing rules: ``docs/usage.md`` ("Image facts").
 """
 
 from __future__ import annotations
@@ -325,7 +236,7 @@ class GainDecision:
 def decide_gain(*, units: Units, sky: SkyStats | None, header_gain: float | None = None,
                 header_source: str | None = None, exptime: float | None = None,
                 user_gain: float | None = None) -> GainDecision:
-    """Choose the gain (electrons per image unit) by the rules in the module docstring.
+    """Choose the gain (electrons per image unit) by the rules in ``docs/usage.md`` ("Image facts").
 
     Parameters
     ----------
@@ -815,7 +726,7 @@ def _zeropoint_candidates(header, primary, units: Units, exptime, pixel_scale):
 
 
 def _zeropoint_checks(zp: float, units: Units, sky: SkyStats | None, unit_zp: float | None) -> list[str]:
-    """Reasons a zero point is implausible (empty when it is fine); rules in the module docstring."""
+    """Reasons a zero point is implausible (empty when it is fine); rules in ``docs/usage.md``."""
     out = []
     if sky is not None and np.isfinite(sky.sigma) and sky.sigma > 0:
         depth = zp - 2.5 * math.log10(sky.sigma)
@@ -882,14 +793,14 @@ def load_image(path, *, hdu: int | None = None, zp: float | None = None, pixel_s
         HDU index; default the first 2-D image HDU.
     zp : float, optional
         Photometric zero point; default from the header and units (rules in
-        the module docstring).  Warned about when implausible.
+        ``docs/usage.md``).  Warned about when implausible.
     pixel_scale : float, optional
         Arcsec per pixel; default from the WCS.  Required when there is no WCS.
     fwhm : float, optional
         Seeing FWHM in *pixels*; default: estimated from stars later.
     gain : float, optional
         Electrons per image unit; default from the header and units, checked
-        against the sky noise (rules in the module docstring).
+        against the sky noise (rules in ``docs/usage.md``).
     saturation : float, optional
         Saturation level; default from the header, if present.
     weight : str or Path, optional

@@ -1,31 +1,9 @@
 """The run directory: where every output of a run lives, written atomically.
 
-Rules
------
-* A file appears under its final name only when it is complete: it is
-  written to a hidden temporary name in the same directory and moved into
-  place with :func:`os.replace` (atomic on POSIX).  A crash leaves at most a
-  ``.tmp-*`` file, which the next run removes.
-* ``run.json`` records the run's *fingerprint* (input file checksums, image
-  options, resolved configuration, seed) and which stages are done.  Opening
-  a directory that holds the same fingerprint resumes it: finished stages are
-  skipped.  A different fingerprint is refused with the list of differences;
-  nothing is overwritten silently.  A non-empty directory that is not a run
-  is refused too.
-* Inputs are only ever read; output names are fixed and the directory must
-  be empty or a run, so no input can be overwritten.
-* ``--out`` must be writable: :meth:`RunDirectory.check` finds out before any
-  work by creating and removing a probe directory (file modes alone do not
-  tell: root ignores them, and a read-only mount or a quota refuses anyway).
-* One process at a time: :meth:`RunDirectory.open` takes ``run.lock``, which
-  holds the process id, host and start time of its holder.  A second run into
-  a directory whose holder is alive is refused with the holder named; the lock
-  of a process that no longer runs (killed) is taken over, and
-  :attr:`RunDirectory.lock_note` says so.  :meth:`RunDirectory.release`
-  removes it.
-* An output the operating system refuses to write (a full disk) raises
-  :class:`~comest_bayes.errors.OutputWriteError` naming the file and the
-  reason.
+:class:`RunDirectory` checks that ``--out`` is writable, takes the ``run.lock``, records the
+run's fingerprint and finished stages in ``run.json`` (resuming a run of the same fingerprint,
+refusing any other) and writes every file atomically.  The rules: ``docs/usage.md`` ("The run
+directory").
 """
 
 from __future__ import annotations

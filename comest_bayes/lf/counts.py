@@ -1,50 +1,9 @@
 """Number-count (luminosity-function) models, declared in TOML like the completeness models.
 
-A count model is a differential surface density of sources per unit
-magnitude, ``phi(m)`` in deg^-2 mag^-1, as a function of the *true* magnitude.
-Its functional form comes from a fixed registry (:data:`FORMS`); a TOML
-specification picks a form, fixes its constants and gives the prior of every
-free parameter.  Nothing in a specification is executed: a user's file can
-only choose among the registered forms.
-
-Forms (all parameters are sampled in the units shown, no transformation)
--------------------------------------------------------------------------
-``powerlaw``
-    ``phi(m) = 10**(log_n + slope (m - m_ref))``; parameters ``log_n``
-    (log10 of phi at ``m_ref``, deg^-2 mag^-1) and ``slope`` (d log10 phi / dm);
-    constant ``m_ref``.  Euclidean counts have ``slope = 0.6``; faint galaxy
-    counts ~0.3 (e.g. Metcalfe et al. 2001, MNRAS 323, 795).
-``schechter``
-    The Schechter (1976, ApJ 203, 297) function written in magnitudes::
-
-        phi(m) = 0.4 ln(10) 10**log_phi_star x**(alpha + 1) exp(-x),   x = 10**(0.4 (m_star - m))
-
-    parameters ``log_phi_star``, ``m_star``, ``alpha``.
-``double_powerlaw``
-    A smoothly broken power law::
-
-        phi(m) = 2 10**log_n_b / (10**(-slope_bright (m - m_b)) + 10**(-slope_faint (m - m_b)))
-
-    which tends to slope ``slope_bright`` brighter than ``m_b`` and
-    ``slope_faint`` fainter (for ``slope_bright > slope_faint``), and equals
-    ``10**log_n_b`` at ``m = m_b``; parameters ``log_n_b``, ``m_b``,
-    ``slope_bright``, ``slope_faint``.
-
-Specification files (``models/counts/*.toml``)
------------------------------------------------
-::
-
-    name = "powerlaw"
-    description = "..."
-    form = "powerlaw"
-    [constants]
-    m_ref = 23.0
-    [priors]
-    log_n = {dist = "uniform", lo = -2.0, hi = 8.0}
-    slope = {dist = "normal", mu = 0.3, sigma = 0.3}
-
-Priors are ``normal`` (``mu``, ``sigma``) or ``uniform`` (``lo``, ``hi``); every
-parameter of the form needs one (a proper prior keeps the posterior proper).
+A count model ``phi(m)`` (deg^-2 mag^-1, true magnitude) takes its form from the fixed registry
+:data:`FORMS` (``powerlaw``, ``schechter``, ``double_powerlaw``); a TOML specification picks a
+form, fixes its constants and gives every free parameter a prior, and nothing in it is executed.
+Forms and file format: ``docs/lf.md`` ("Count-model specifications").
 """
 
 from __future__ import annotations

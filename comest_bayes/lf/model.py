@@ -625,7 +625,7 @@ def fit_counts(inputs: LFInputs, counts, *, mode: str = "joint", post=None, f_fi
         From :func:`build_inputs`.
     counts : CountModel, CountSpec or str
     mode : {"joint", "marginal", "fixed"}
-        See the module docstring.
+        See ``docs/lf.md`` ("Completeness uncertainty").
     post : CompletenessPosterior, optional
         Required unless ``f_fixed`` is given (then only ``mode="fixed"``).
     f_fixed : (f_obj, f_bar), optional

@@ -1,26 +1,8 @@
 """Run independent tasks serially, in local processes, or on Dask.
 
-Every task carries its own seed, so the results do not depend on the
-executor, the number of workers or the completion order.  Results are handed
-to ``on_result`` in the main process as they arrive (it writes them
-atomically), so memory does not grow with the number of tasks and an
-interrupted run loses at most the tasks in flight.
-
-Local processes are started with ``forkserver`` (``spawn`` where that is not
-available), never ``fork``: forking a process after JAX or a threaded BLAS has
-started is unsafe.
-
-Each local worker runs on a core of its own (worker k on the k-th core the
-main process may use) and ``--ncpu 1`` keeps the main process on one core
-while it runs the tasks (:mod:`comest_bayes.pipeline.runtime`): ``--ncpu N`` means N
-busy cores, however many threads XLA starts.
-
-Workers exit with the process that started them: killing only the main
-process (``kill PID``, an out-of-memory kill) must not leave workers
-computing for nobody.  Each worker asks Linux to kill it when its parent (the
-fork server) dies (``prctl(PR_SET_PDEATHSIG)``; the fork server exits when the
-main process is gone), and a watchdog thread checks every
-:data:`PARENT_POLL_SECONDS` that the main process still runs (any platform).
+Every task carries its own seed, so the results do not depend on the executor; results reach
+``on_result`` in the main process as they arrive.  Workers are started with ``forkserver``,
+pinned to a core each, and exit with the main process.  Details: ``docs/compute.md``.
 """
 
 from __future__ import annotations

@@ -1,37 +1,9 @@
 """Checks a run makes before it writes its first byte.
 
-:func:`comest_bayes.pipeline.stages.run_pipeline` calls these after the image is read
-(and its seeing known) but before the run directory is touched, so a run that
-cannot give an answer is refused with the reason instead of writing files and
-failing later:
-
-* :func:`choose_density` -- how many injections per realization: the user's
-  density, or (``injection.density = 0``, the default) one chosen per kind from
-  the image: the published 15 per arcmin^2 where it gives at least
-  :data:`TARGET_PER_REALIZATION`; on a small field of fine pixels raised towards
-  that target but to at most :data:`PER_BACKGROUND_MESH` per background mesh
-  (more lifts the background, and m50 moves bright) and half of what random packing
-  holds at the minimum separation; lowered to that packing where 15 is more
-  (coarse pixels).  :func:`budget_warnings` says when a kind's expected usable
-  injections stay under :data:`FEW_USABLE_INJECTIONS`.
-* :func:`check_injection_count` -- can the injections give usable outcomes at
-  all?  An injection is *usable* when its centre is unmasked and its whole
-  stamp lies on the image (:mod:`comest_bayes.recover.realization`).  The stamp of a
-  point source has half-size ``h = ceil(R + 1)`` pixels, ``R`` the radius
-  holding 99.5% of the PSF's light (:mod:`comest_bayes.inject.render`); galaxies'
-  stamps are larger, so counting the unmasked pixels at least ``h`` from every
-  edge gives an upper bound on the usable fraction.  With the Poisson mean
-  ``density x area`` per realization, capped by how many fit at the minimum
-  separation, the expected number of usable injections per kind over all
-  realizations must reach :data:`MIN_USABLE_INJECTIONS`.
-* :func:`check_memory` -- does the memory the injection density implies fit?
-  Placement with a minimum separation tests candidate pairs, whose number
-  grows with the *square* of the density (``--density 1e6`` grew past 10 GB);
-  the estimate (:func:`injection_memory`) is compared with the memory
-  available (:func:`available_memory`).
-
-Everything here is a pure function of shapes, configuration and the
-machine's memory figures; nothing is written.
+:func:`choose_density` (injections per realization), :func:`check_injection_count` (enough
+usable injections) and :func:`check_memory` (the placement fits in memory); pure functions of
+shapes, configuration and the machine's memory figures, nothing is written.  The rules:
+``docs/injection.md`` ("Checks before the first byte").
 """
 
 from __future__ import annotations
@@ -268,7 +240,7 @@ def _inner_unmasked(mask: np.ndarray, half: int) -> int:
 
 def injection_budget(kind: str, *, shape, mask, pixel_scale: float, fwhm_pix: float, injection,
                      stamp_half: int | None = None, density: float | None = None) -> InjectionBudget:
-    """Expected injections of ``kind`` per realization on an image (see the module docstring).
+    """Expected injections of ``kind`` per realization on an image (see ``docs/injection.md``).
 
     ``density`` (per arcmin^2) overrides ``injection.density`` (e.g. the automatic choice of
     :func:`choose_density`); an automatic ``injection.density`` of 0 without it counts at the

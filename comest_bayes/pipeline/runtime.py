@@ -1,29 +1,8 @@
 """Process-wide settings of the numerical runtime (JAX/XLA threads, compilation cache).
 
-The command line calls :func:`configure` once, before any JAX computation, and
-the worker processes inherit its environment.  Python users who import the
-package are not affected unless they call it.
-
-* **Threads.**  XLA's CPU backend and the BLAS start thread pools sized to the
-  machine.  With ``threads=1`` (what ``--ncpu`` grants each fit worker) the
-  XLA flags ``--xla_cpu_multi_thread_eigen=false
-  intra_op_parallelism_threads=1`` and ``OMP_NUM_THREADS`` /
-  ``OPENBLAS_NUM_THREADS`` / ``MKL_NUM_THREADS`` = 1 keep each process on its
-  core, so ``--ncpu N`` means N busy cores.  These take effect only before the
-  first JAX computation of the process.
-* **Cores.**  XLA's CPU client sizes its thread pool from, and its threads
-  run on, the cores the process may use; the flags above do not stop it from
-  spreading one computation over two cores.  The JAX developers' advice is
-  the process's CPU affinity, so a run's computing processes are pinned to
-  one core each (:func:`pin_to_one_core`: each worker of ``--ncpu N`` to its
-  own core; with ``--ncpu 1`` the main process while it runs the tasks,
-  :func:`one_core`).  CPU time then equals the wall time of that core.
-* **Compilation cache.**  Every model layout compiles its likelihood once per
-  padded data size; JAX's persistent compilation cache keeps the compiled
-  code on disk (``$COMEST_BAYES_CACHE``, default
-  ``~/.cache/comest-bayes/jax``), so later runs and worker processes load it
-  instead of compiling again.  It only ever holds compiled code of this
-  package's own functions; deleting it costs one compile the next time.
+The command line calls :func:`configure` once, before any JAX computation, and the worker
+processes inherit its environment; Python users who import the package are not affected unless
+they call it.  Threads, core pinning and the cache: ``docs/compute.md``.
 """
 
 from __future__ import annotations

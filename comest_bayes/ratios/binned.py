@@ -1,68 +1,9 @@
-r"""Binned completeness, purity and detection rate, and their maps.
+"""Binned completeness, purity and detection rate, and their maps.
 
-These are the raw, model-free ratios of the ComEst method (Chiu, Desai & Liu
-2016, "ComEst: a Completeness Estimator of Source Extraction on Astronomical
-Imaging"), computed from the matched injection and detection tables of one
-realization or of all realizations merged.
-
-Definitions
------------
-With injections binned in *true* magnitude :math:`m_{\rm true}` and
-detections binned in *measured* magnitude :math:`m_{\rm meas}` (e.g.
-``mag_auto``), using the same bin edges:
-
-* completeness
-
-  .. math:: f_{\rm com}(m) = \frac{N_{\rm matched}(m_{\rm true})}{N_{\rm injected}(m_{\rm true})}
-
-  over the injections that do not fall on masked pixels (the ``masked``
-  column of the truth table);
-
-* purity
-
-  .. math:: f_{\rm pur}(m) = \frac{N_{\rm matched}(m_{\rm meas})}{N_{\rm detected}(m_{\rm meas})},
-
-  where the detections counted are the matched ones plus the false ones.
-  Detections that coincide with real sources kept in a "bright and big"
-  image (:func:`comest_bayes.recover.matching.classify_detections`) are excluded
-  from both counts;
-
-* detection rate
-
-  .. math:: f_{\rm dr}(m) = \frac{N_{\rm detected}(m_{\rm meas})}{N_{\rm injected}(m_{\rm true})},
-
-  with the same detections as the purity denominator (matched plus false)
-  and the same injections as the completeness denominator.  Numerator and
-  denominator count different objects binned in different magnitudes, so
-  :math:`f_{\rm dr}` exceeds 1 where false detections dominate.
-
-* maps :math:`f_{\rm com}(x, y, m)` and :math:`f_{\rm pur}(x, y, m)`: the same
-  ratios in square spatial bins of ``bin_pix`` image pixels (from
-  ``RatiosConfig.map_bin_arcmin`` and the pixel scale, see
-  :func:`map_bin_pixels`) and a few magnitude bins.
-
-Uncertainties
--------------
-Completeness and purity are binomial proportions (``k`` successes out of
-``n`` trials); their intervals come from
-:func:`astropy.stats.binom_conf_interval` with the method and probability
-content of :class:`comest_bayes.config.RatiosConfig` (Wilson, 68.27% by
-default).  The detection rate is not a proportion: its numerator is treated
-as a Poisson count and the frequentist-confidence Poisson interval of ``k``
-(:func:`astropy.stats.poisson_conf_interval`) is divided by ``n`` (the number
-of injections, fixed by design).
-
-Empty bins have ``n = 0`` and NaN ratio and interval; no division warnings
-are raised.
-
-Binning convention
-------------------
-Bin ``i`` holds values with ``edges[i] <= v < edges[i+1]``; the last bin also
-holds ``v == edges[-1]`` (:func:`numpy.histogram`'s convention).  Values
-outside the edges or not finite are in no bin.  Spatial bin ``(iy, ix)``
-covers 0-based image coordinates ``[ix*b - 0.5, (ix+1)*b - 0.5)`` in x (and
-likewise in y), so its centre is the image position ``(ix + 0.5)*b - 0.5``;
-:func:`map_wcs` gives the map grid a WCS consistent with this.
+The raw, model-free ratios of the ComEst method (Chiu, Desai & Liu 2016), from the matched
+injection and detection tables of one realization or of all realizations merged, with binomial
+(Poisson for the detection rate) intervals.  Definitions, intervals and the binning convention:
+``docs/ratios.md``.
 """
 
 from __future__ import annotations

@@ -1,44 +1,9 @@
-r"""Depth references that injection-recovery completeness is compared with.
+"""Depth references that injection-recovery completeness is compared with.
 
-Chiu, Desai & Liu (2016) compare the completeness measured by injection with
-two classical depth estimates, both provided here:
-
-1. **Signal-to-noise limiting magnitudes** from the pixel noise.
-
-   *Aperture* (:func:`limiting_magnitude`): with independent pixel noise of
-   standard deviation :math:`\sigma` (image units per pixel), the flux summed
-   in a circular aperture of diameter :math:`d` pixels (area
-   :math:`A = \pi d^2 / 4`) has noise :math:`\sigma\sqrt{A} = \sigma
-   \sqrt{\pi}\, d / 2`.  The magnitude of a source detected at
-   :math:`n_\sigma` times that noise is
-
-   .. math:: m_{\rm lim} = {\rm zp} - 2.5 \log_{10}\!\left(n_\sigma\, \sigma\,
-             \sqrt{\pi}\, d / 2\right).
-
-   *Point source* (:func:`point_source_depth`): the optimal (PSF-weighted)
-   flux of an unresolved source in white background noise has variance
-   :math:`\sigma^2\, A_{\rm eff}` with the noise-equivalent area
-   :math:`A_{\rm eff} = 1 / \sum_i P_i^2` of the normalised PSF :math:`P`.
-   For a Gaussian PSF of standard deviation :math:`\sigma_{\rm psf} = {\rm
-   FWHM} / (2\sqrt{2\ln 2})`, :math:`A_{\rm eff} = 4\pi\sigma_{\rm psf}^2
-   \approx 2.266\,{\rm FWHM}^2` (e.g. King 1983, PASP 95, 163), so
-
-   .. math:: m_{\rm lim} = {\rm zp} - 2.5 \log_{10}\!\left(n_\sigma\, \sigma\,
-             2\sqrt{\pi}\, \sigma_{\rm psf}\right),
-
-   the same as an aperture of diameter :math:`4\sigma_{\rm psf} \approx
-   1.70\,{\rm FWHM}`.
-
-   Both assume uncorrelated pixel noise and ignore the sources' own Poisson
-   noise (background-limited regime).  On resampled (co-added) images the
-   pixel noise is correlated and these depths are too deep.
-
-2. **Number-count histogram** (:func:`histogram_completeness`): the counts of
-   detected sources are fitted, over a bright range where detection is
-   complete, with a power law :math:`\log_{10} N(m) = a + b\,m` (:math:`N`
-   per unit magnitude); its extrapolation to faint magnitudes is taken as the
-   true counts, and the completeness is the observed over the extrapolated
-   counts in each bin.
+Signal-to-noise limiting magnitudes (:func:`limiting_magnitude`, :func:`point_source_depth`), the
+number-count histogram completeness (:func:`histogram_completeness`) and the predicted offset of
+point-source m50 from the 5-sigma depth (:func:`m50_depth_offset`).  Formulas and sources:
+``docs/depth.md``.
 """
 
 from __future__ import annotations
@@ -75,8 +40,8 @@ def limiting_magnitude(noise_sigma, zeropoint: float, *, aperture_diameter_pix: 
                        reduce: str | None = None):
     """Magnitude of a source at ``nsigma`` times the noise in a circular aperture.
 
-    ``m = zeropoint - 2.5 log10(nsigma * sigma * sqrt(pi) * d / 2)``; see the
-    module docstring.
+    ``m = zeropoint - 2.5 log10(nsigma * sigma * sqrt(pi) * d / 2)``; see
+    ``docs/depth.md``.
 
     Parameters
     ----------

@@ -1,50 +1,7 @@
 """The raw binned ratios of a run and the ``summary.json`` they go into.
 
-``summary.json`` (format version 1; keys are stable, new keys may be added)::
-
-    {
-      "format": 1,
-      "image": {...facts: zero point, pixel scale, FWHM and their sources...},
-      "depth": {
-        "point_source_5sigma": m,          # optimal-photometry 5-sigma depth (injection PSF), median noise
-        "point_source_5sigma_gaussian": m, # the same for a Gaussian PSF of the FWHM
-        "psf_nea_pix": a,                  # noise-equivalent area of the injection PSF, pixels
-        "aperture_5sigma": m,              # 5-sigma in a circular aperture of 2 FWHM diameter
-        "aperture_diameter_pix": d,
-        "histogram": {...} | null          # completeness from the detected number counts
-      },
-      "kinds": {
-        "<kind>": {
-          "counts": {"realizations", "injected", "usable", "detected", "false", "preexisting",
-                     "near_unusable"},
-          "mag_range": [bright, faint],
-          "binned": {
-            "mag_edges": [...], "mag_centers": [...],
-            "completeness": [...], "completeness_lower": [...], "completeness_upper": [...],
-            "completeness_n": [...], "completeness_k": [...],
-            "purity": [...], "purity_lower": [...], "purity_upper": [...], "purity_n": [...], "purity_k": [...],
-            "detection_rate": [...], "detection_rate_lower": [...], "detection_rate_upper": [...],
-            "confidence": 0.6827, "interval": "wilson"
-          },
-          "m50_binned": m | null,          # where the binned completeness first falls below 0.5
-          "maps": {"file": "maps/<kind>_maps.fits", "mag_edges": [...], "bin_arcmin": b}
-        }
-      },
-      "sourcefree": {                      # comest_bayes.sourcefree.judge_replacement
-        "injected_on": "sfi" | "bnb" | "observed",
-        "fraction_replaced": f,            # of the unmasked pixels of the image injected on
-        "sfi_fraction_replaced": f, "bnb_fraction_replaced": f | null,
-        "warn_fraction": 0.5, "max_fraction": 0.9,
-        "background_shift_sigma": s, "noise_ratio": r,   # the fill against the detection's maps
-        "warnings": [...], "refusal": null
-      }
-    }
-
-Completeness bins true magnitudes of usable injections; purity bins measured
-magnitudes (``matching.mag_column``) of detections, leaving out pre-existing
-ones; the detection rate divides all counted detections in a measured bin by
-the injections in the same true bin (so it can exceed 1).  Empty bins have
-``n = 0`` and ``null`` ratios.
+The format of ``summary.json`` (version 1; keys are stable, new keys may be added):
+``docs/ratios.md``.
 """
 
 from __future__ import annotations

@@ -1,43 +1,9 @@
 """One-to-one matching of injected (truth) sources to detections.
 
-An injected source is *recovered* when a detection lies within ``radius``
-pixels of its true position and its measured magnitude is within ``mag_tol``
-of the true magnitude.  Matching is strictly one-to-one: an injection is
-matched to at most one detection and a detection to at most one injection.
-(The published ComEst code matched each detection independently, so two
-deblended fragments of one injected source could both claim it and the
-completeness could exceed 1; here the second fragment stays unmatched and
-counts as a false detection.)
-
-Algorithm
----------
-1. Candidate pairs: every (truth, detection) pair with separation
-   ``<= radius`` (found with :class:`scipy.spatial.cKDTree`) and
-   ``|det_mag - truth_mag| <= mag_tol``.  A NaN magnitude (e.g. a detection
-   with non-positive flux) never passes the magnitude test.
-2. Global greedy assignment: candidate pairs are taken in order of increasing
-   separation; ties in separation are broken by smaller ``|dmag|``, then by
-   the lower truth index, then by the lower detection index.  A pair is
-   accepted when neither its injection nor its detection has been used yet.
-
-Because the order is set by the pairs' own separations and magnitude
-differences, the matched *pairs* do not depend on the order of the input
-rows (only exact ties in both separation and ``|dmag|`` fall back on the
-row indices).  The greedy pass is carried out in rounds: in each round every
-pair that comes first in the ordering both among the remaining pairs of its
-injection and among those of its detection is accepted (exactly the pairs the
-sequential greedy pass would accept next), and the pairs that share an
-injection or detection with an accepted one are dropped.  This gives the same
-result as the sequential pass but runs as a few vectorised numpy steps.
-
-Detections that stay unmatched are false detections, except in runs on the
-"bright and big" (BnB) image, where real bright sources are kept in the image:
-there :func:`classify_detections` sets aside detections that coincide with a
-kept real source, so that they count neither as recovered injections nor as
-false detections.
-
-All coordinates are pixels in one common convention (comest-bayes uses
-0-based pixel centres throughout, see :mod:`comest_bayes.detect.catalog`).
+An injection is recovered when a detection lies within ``radius`` pixels and ``mag_tol``
+magnitudes of it; pairs are assigned by a global greedy pass (closest first), independent of the
+row order, and :func:`classify_detections` sets aside detections of kept real sources.  The
+algorithm: ``docs/injection.md`` ("Matching injections to detections").
 """
 
 from __future__ import annotations
@@ -218,7 +184,7 @@ def match_one_to_one(truth_x, truth_y, truth_mag, det_x, det_y, det_mag, *, radi
     Returns
     -------
     MatchResult
-        Matched pairs and per-row lookups; see the module docstring for the
+        Matched pairs and per-row lookups; see ``docs/injection.md`` for the
         tie-breaking rule.
 
     Notes

@@ -1,44 +1,9 @@
 """Injection and recovery: one realization, and the merge of many.
 
-A *realization* injects one Poisson-drawn set of synthetic sources of one
-kind onto the base image (the source-free or bright-and-big image),
-re-detects with the identical detection configuration, and matches
-injections to detections one-to-one.  Its only randomness comes from the
-streams ``("inject", kind, index)`` and ``("render", kind, index)`` of the
-root seed, so a realization gives the same numbers wherever and whenever it
-runs.
-
-Detections on a realization fall in three classes:
-
-* **matched** to an injection;
-* **pre-existing**: coincident with a source that is detected on the bare
-  base image too (a kept bright source of a BnB image, or a faint real source
-  that surfaces once the bright ones are gone); these are neither injections
-  nor false detections, and are left out of purity;
-* **near an unusable injection**: unmatched, within the matching radius of an
-  injection that is not usable (centre on a masked pixel, or stamp cut by the
-  image border), whose light the detector may still see with a spoiled
-  magnitude; left out of purity too;
-* **false**: everything else.
-
-An injection is *usable* when its centre is not masked and it was drawn
-whole (truth ``flag == 0``); only usable injections enter the ratios and the
-outcome table.
-
-Output tables (merged over realizations by :func:`merge_realizations`):
-
-``injected``
-    every injection (the truth) with its outcome columns;
-``matched``
-    detected injections, truth and measured columns side by side;
-``unmatched``
-    injections that were not detected;
-``false``
-    false detections;
-``outcomes``
-    one row per usable injection (centre not masked, drawn without failure):
-    the inputs of the completeness model (x, y, mag, size, local noise),
-    ``detected``, the measured magnitude and size, flags and realization.
+A realization injects one Poisson-drawn set of sources of one kind onto the base image,
+re-detects with the identical configuration and matches one-to-one, with randomness only from
+its own seed streams; :func:`merge_realizations` merges the output tables.  Classes of
+detections, usable injections and the tables: ``docs/injection.md``.
 """
 
 from __future__ import annotations

@@ -1,39 +1,8 @@
 """Photometric transfer: the distribution of measured magnitude given true magnitude, for detected sources.
 
-The matched injections of a run give, for every detected injection, its true
-magnitude ``m`` and the magnitude the detector measured (``det_mag_auto``).
-Their difference ``dm = m_obs - m`` has a bias (flux missed by the aperture),
-a scatter (noise) and tails (blends with neighbours, deblending failures).
-This module measures
-
-    ``K(m_obs | m) = p(m_obs | m, detected)``  (per magnitude),
-
-an empirical kernel on a grid of true magnitudes.  It is *conditioned on
-detection*: the joint probability of detecting a source of true magnitude
-``m`` and measuring ``m_obs`` is ``f(m) K(m_obs | m)`` with ``f`` the
-completeness, which is how :mod:`comest_bayes.lf.fit` uses it.  Detected
-injections whose measured magnitude is not finite (negative AUTO flux) are
-counted in the normalisation but not in the kernel, so ``K`` integrates to
-the fraction of detections with a finite magnitude (such sources cannot
-enter a magnitude-limited catalog either).
-
-Estimator
----------
-At each node ``t`` of a grid in true magnitude (default step 0.1 mag) the
-matched injections with ``|m - t| <= h_t`` are used, ``h_t`` being the larger
-of ``window`` (default 0.25 mag) and the distance to the ``min_count``-th
-nearest injection (so the window widens where injections are sparse, e.g.
-at the faint end where few are detected).  They are weighted by the
-Epanechnikov profile ``1 - (d / 1.05 h_t)^2`` and their ``dm`` smoothed with a
-Gaussian kernel density estimate whose bandwidth is Silverman's rule of thumb
-on the robust scale, ``0.9 min(sd, IQR / 1.34) n_eff^(-1/5)`` (Silverman
-1986, eq. 3.31), at least ``2 dm_step``.  The density and its cumulative are
-tabulated on a uniform ``dm`` grid; between nodes both are interpolated
-linearly in ``t`` at fixed ``dm``.  Beyond the injected range the edge node is
-used (extrapolation; :mod:`comest_bayes.lf.fit` warns when that matters).
-
-The transfer is assumed not to depend on position; only the completeness
-carries the spatial variation.
+``K(m_obs | m) = p(m_obs | m, detected)``, measured from the matched injections as an empirical
+kernel on a grid of true magnitudes, for the forward model of :mod:`comest_bayes.lf`.  The
+estimator: ``docs/lf.md`` ("Photometric transfer").
 """
 
 from __future__ import annotations

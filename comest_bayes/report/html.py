@@ -1,30 +1,9 @@
 """The self-contained HTML report of a run: ``comest-bayes report DIR``.
 
-:func:`write_report` reads a run directory and writes ``DIR/report.html``: one
-file with every figure embedded as a base64 PNG (each also saved as PNG and PDF
-under ``DIR/figures/``), plain inline CSS, no JavaScript and no external
-resource, so it opens anywhere, offline.  It holds
-
-* a summary per source kind: binned and posterior m50, m80, m90 with their
-  68% intervals, the models;
-* the input facts (zero point, pixel scale, FWHM, gain, saturation, weight,
-  mask, the injected PSF) and where each came from, the comparison of the
-  sizes of injected point sources and stars, and the depth references;
-* image cutouts as in Figure 3 of Chiu, Desai & Liu (2016): observed image
-  with detections, source-free image, one simulated image with recovered and
-  missed injections and false detections;
-* per kind: completeness and purity versus magnitude (binned ratios with their
-  intervals, posterior median with 68% and 95% bands, 5-sigma depth lines),
-  the table of binned ratios, measured versus true magnitude, completeness and
-  purity maps, the posterior m50(x, y) map and its uncertainty;
-* the model selection (PSIS-LOO table and comparison), parameter summaries and
-  sampler diagnostics (autocorrelation times, traces);
-* luminosity-function figures when the run holds ``lf/`` (from
-  :mod:`comest_bayes.report.plots.lf`, when that module is installed);
-* the configuration, the software versions and the stage timings.
-
-A partial run gives a partial report that says what is missing (no
-``summary.json`` yet, no model fitted, a purity model skipped, ...).
+:func:`write_report` reads a run directory and writes ``DIR/report.html``: one file with every
+figure embedded as a PNG (also saved under ``DIR/figures/``), no JavaScript and no external
+resource.  A partial run gives a partial report.  The sections: ``docs/usage.md`` ("The
+report").
 """
 
 from __future__ import annotations

@@ -1,65 +1,9 @@
-r"""Predicted detection probability of a point source on white Gaussian noise.
+"""Predicted detection probability of a point source on white Gaussian noise.
 
-A pure-numerics module: functions of arrays and parameters, no I/O.  The
-derivation, its assumptions and the measured size of each correction are in
-``docs/analytic.md``; in short:
-
-* A point source of total flux ``F`` (image units) with a circular Gaussian
-  PSF of standard deviation ``s = FWHM / (2 sqrt(2 ln 2))`` pixels, centred at
-  ``(x0, y0)``, has pixel values ``F P(p - c)`` with ``P`` the unit-flux
-  Gaussian *sampled at pixel centres* (GalSim ``method="no_pixel"``, which is
-  how :mod:`comest_bayes.inject.render` draws the effective PSF), or integrated
-  over the pixel (``pixel_integrated=True``).
-* ``psf="moffat"`` replaces the Gaussian with the circular Moffat profile a
-  run injects (:func:`comest_bayes.inject.psfmodel.make_psf`:
-  ``galsim.Moffat(beta=beta, fwhm=FWHM)``):
-  ``P(r) = (beta - 1) / (pi alpha^2) (1 + (r / alpha)^2)^(-beta)`` with
-  ``alpha = FWHM / (2 sqrt(2^(1/beta) - 1))``, unit flux, untruncated,
-  sampled at pixel centres (as a run injects a FWHM given with ``--fwhm`` or
-  read from the header) or integrated over the pixel
-  (``pixel_integrated=True``, as a run injects the Moffat fitted on the
-  image's stars); see :func:`psf_image`.  A run records its FWHM, beta and
-  pixel integration in ``run.json`` (``psf``).  Everything below holds for
-  any PSF ``P``; only ``S(c)`` and the filtered profile change.
-* SEP with ``filter_type="conv"`` and an error map (how
-  :func:`comest_bayes.detect.sep_backend.detect_array` calls it) convolves the
-  background-subtracted image with the unit-sum kernel ``k`` and keeps the
-  pixels whose *filtered* value exceeds ``DETECT_THRESH * sigma_p``, with
-  ``sigma_p`` the *unfiltered* noise at that pixel (measured: on unit white
-  noise with the 3x3 default kernel and DETECT_THRESH = 1.5 the fraction of
-  pixels above threshold is 2.7e-5 = P(N(0, 0.375) > 1.5), not
-  P(N(0, 1) > 1.5) = 0.067).  The filtered noise of white noise ``sigma`` is
-  Gaussian with standard deviation ``sigma ||k||_2`` and covariance
-  ``sigma^2 (k * k)(p - q)`` between pixels ``p`` and ``q``.
-* Peak pixel, minarea = 1: the filtered value of the brightest pixel is
-  ``F S(c) + n`` with ``S(c) = max_p (k * P_c)(p)``, so
-
-  .. math::  p(F; c) = \Phi\!\left(\frac{F S(c)}{\sigma \|k\|_2}
-             - \frac{t}{\|k\|_2}\right),
-
-  a normal CDF in the filtered signal-to-noise ``nu = F S / (sigma ||k||)``
-  minus the threshold in filtered-noise units ``nu_t = t / ||k||``.  At
-  ``p = 1/2``: ``F50 = t sigma / S(c)`` and ``m50 = ZP - 2.5 log10(F50)``.
-* The centre of an injection is uniform within its pixel, so the prediction
-  is the average of ``p(F; c)`` over ``c`` in the pixel
-  (:func:`detection_probability`, midpoint rule).
-* The peak-pixel formula ignores that *any* pixel near the source may cross
-  the threshold (neighbours of a faint source are nearly as bright, and their
-  noise is partly independent) and that DETECT_MINAREA > 1 asks for several
-  connected pixels.  :func:`detection_probability_mc` evaluates the exact
-  probability of "a connected (8-neighbour) group of at least ``minarea``
-  pixels above threshold touching the source's neighbourhood" by Monte Carlo
-  over the filtered-noise field (seeded; the same noise draws for every
-  magnitude, so the curve is smooth and monotone).
-
-* Real images often carry *correlated* pixel noise (resampled coadds, drizzled
-  mosaics).  The peak-pixel m50 does not depend on it (the threshold is
-  relative to the per-pixel sigma), but the neighbour and minarea terms do:
-  :func:`noise_autocorrelation` measures the noise's normalised
-  autocorrelation on an image, and ``noise_acf=`` makes the Monte Carlo draw
-  noise with it (:func:`correlated_noise_kernel`).
-
-Magnitudes follow the package's convention ``F = 10**(-0.4 (m - ZP))``.
+A pure-numerics module: functions of arrays and parameters, no I/O.  The peak-pixel closed form
+(:func:`detection_probability`), its Monte Carlo extension to other pixels, MINAREA and
+correlated noise (:func:`detection_probability_mc`), for a Gaussian or Moffat PSF.  The
+derivation, its assumptions and the measured size of each correction: ``docs/analytic.md``.
 """
 
 from __future__ import annotations

@@ -1,57 +1,9 @@
-r"""Known completeness truths, synthetic outcome tables, and the binned estimate, for validation.
+"""Known completeness truths, synthetic outcome tables, and the binned estimate, for validation.
 
-This module is the numerical half of the honesty benchmark
-(``benchmarks/bench_honesty.py``): it draws per-injection outcome tables
-(detected or not) from a *known* completeness function on a synthetic
-detection-noise field, so that any estimate of the completeness (the
-package's Bayesian models, or the published binned ratio) can be compared
-with the exact answer.  Everything here is plain numpy; every random number
-comes from a ``seed`` argument.
-
-Scene
------
-A :class:`Scene` is a small image footprint: a 2-D detection-noise map
-(``noise``, sigma per pixel) and a mask (True = masked).
-:func:`make_scene` builds one whose depth varies smoothly across the field,
-with an optional masked chip gap and a few masked blobs.
-
-Depth covariate
----------------
-As in :func:`comest_bayes.bayes.outcomes.covariates_from_outcomes`, the depth of
-a pixel is
-
-.. math:: d = -2.5 \log_{10}(\sigma / \sigma_{\rm ref}),
-
-positive where the image is deeper (lower noise).  The package takes
-:math:`\sigma_{\rm ref}` as the median noise of the injections; the truths
-here use the scene's median *unmasked* noise (:attr:`Scene.sigma_ref`), a
-fixed property of the scene.  The two differ by the sampling scatter of the
-median, which a fitted model absorbs into its ``m50_0``; image-average
-quantities do not depend on the reference at all.
-
-Truths
-------
-Every truth is
-
-.. math:: f(m, d, u, v) = {\rm floor} + (A - {\rm floor})\, S(t; u, v),
-          \qquad t = m - m_{50}(x, y), \qquad m_{50}(x, y) = m_{50,0} + d,
-
-with a transition :math:`S` falling monotonically from 1 (bright) to 0
-(faint) and :math:`S(0) = 1/2`: as in the package's models, ``m50`` is the
-magnitude half-way between floor and plateau, and it follows the depth one
-for one.  ``u = 2 x / (n_x - 1) - 1`` and ``v = 2 y / (n_y - 1) - 1`` are the
-normalised image coordinates in [-1, 1].  Only :class:`LogisticTruth` (the
-control) is in the package's logistic family; see :data:`TRUTHS` for the list
-and :func:`get_truth` to pick one by name.
-
-Pixels
-------
-A truth is evaluated at pixel centres: an injection anywhere inside pixel
-``(iy, ix)`` has the probability of that pixel's depth and centre ``(u, v)``.
-:func:`draw_outcomes` places injections uniformly over the unmasked pixels
-(and uniformly within a pixel), so the expected detected fraction at
-magnitude ``m`` is exactly the average of ``f`` over the unmasked pixels:
-:func:`truth_curve`.
+The numerical half of the honesty benchmark (``benchmarks/bench_honesty.py``): outcome tables
+drawn from a known completeness function on a synthetic detection-noise field (:class:`Scene`,
+:data:`TRUTHS`, :func:`draw_outcomes`, :func:`truth_curve`).  Plain numpy, seeded.  Scene, depth
+covariate, truths and pixels: ``docs/bayesian.md`` ("Calibration").
 """
 
 from __future__ import annotations

@@ -1,28 +1,9 @@
-"""Figures of a run (matplotlib).
+"""Figures of a run (matplotlib), in modules by topic: images, completeness, maps, diagnostics, lf.
 
-Modules by topic; every plotting function takes plain arrays or the small data
-containers of :mod:`comest_bayes.report.plots.data`, draws into the ``ax=`` it is given
-(or into a new figure when ``ax`` is None) and returns the Axes (or the Figure
-for multi-panel figures).  None of them reads or writes files: the readers of a
-run directory live in :mod:`comest_bayes.report.rundata`, and
-:mod:`comest_bayes.report.html` assembles the figures into the HTML report.
-
-=================================  ===============================================
-module                             figures
-=================================  ===============================================
-:mod:`~.images`                    image cutouts with detections, injections,
-                                   missed injections and false detections marked
-                                   (ComEst paper, Figure 3)
-:mod:`~.completeness`              completeness and purity versus magnitude
-                                   (binned points, posterior bands, depth lines);
-                                   measured versus true magnitude
-:mod:`~.maps`                      binned completeness / purity maps, m50(x, y)
-:mod:`~.diagnostics`               model-selection comparison, autocorrelation
-                                   times, traces
-=================================  ===============================================
-
-Figures are made with :class:`matplotlib.figure.Figure` directly (no pyplot
-state), so they can be drawn in worker threads and never open a window.
+Every plotting function takes plain arrays or the containers of
+:mod:`comest_bayes.report.plots.data`, draws into ``ax=`` (or a new figure) and returns the Axes
+(or the Figure); none reads or writes files.  The modules and their figures: ``docs/usage.md``
+("The report").
 """
 
 from __future__ import annotations
