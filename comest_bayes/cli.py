@@ -36,7 +36,7 @@ LF_OPTIONS = {
                "help": "completeness uncertainty: joint (sampled with the counts), marginal (pooled over "
                        "completeness draws) or fixed (posterior median; too-narrow intervals)"},
     "--catalog": {"dest": "catalog", "default": None, "help": "FITS table of sources (default: the run's "
-                                                              "detection.fits)"},
+                                                              f"{layout.DETECTION})"},
     "--mag-column": {"dest": "mag_column", "default": "mag_auto", "help": "magnitude column of the catalog"},
     "--seed": {"dest": "seed", "type": int, "default": 0, "help": "root seed of the sampler"},
     "--sampler": {"dest": "sampler", "choices": list(SAMPLERS), "default": "auto",
@@ -84,7 +84,7 @@ def _add_config_options(p: argparse.ArgumentParser) -> None:
                         "--executor dask without it starts a local cluster")
     o = p.add_argument_group("output")
     o.add_argument("--no-report", action="store_true",
-                   help="do not write report.html at the end (write it later with: comest-bayes report DIR)")
+                   help=f"do not write {layout.REPORT} at the end (write it later with: comest-bayes report DIR)")
     _add_output_options(o)
 
 
@@ -168,7 +168,7 @@ def build_parser() -> argparse.ArgumentParser:
                                      "(also saved as PNG and PDF under DIR/figures/), the tables, the configuration, "
                                      "the input facts and the stage timings. It needs no network to view.")
     rep.add_argument("dir", help="run directory (the --out of comest-bayes run or demo)")
-    rep.add_argument("--out", default=None, help="HTML file to write (default DIR/report.html)")
+    rep.add_argument("--out", default=None, help=f"HTML file to write (default DIR/{layout.REPORT})")
     rep.add_argument("--center", type=_center, default=None, metavar="X,Y",
                      help="centre of the image cutouts, 0-based pixels (default the image centre)")
     rep.add_argument("--size", type=int, default=400, help="side of the image cutouts in pixels (default 400)")
@@ -184,12 +184,12 @@ def build_parser() -> argparse.ArgumentParser:
     lf.add_argument("dir", help="run directory with a completeness posterior (comest-bayes run or demo)")
     for flag, kw in LF_OPTIONS.items():
         lf.add_argument(flag, **kw)
-    lf.add_argument("--no-report", action="store_true", help="do not rewrite report.html")
+    lf.add_argument("--no-report", action="store_true", help=f"do not rewrite {layout.REPORT}")
     _add_output_options(lf.add_argument_group("output"))
 
     info = sub.add_parser("info", help="show what a run holds: inputs, stages done, m50 with intervals, model, "
                                        "warnings, files",
-                          description="Print a run directory's facts from its run.json and summary.json alone, without "
+                          description=f"Print a run directory's facts from its {layout.RUN} and {layout.SUMMARY} alone, without "
                                       "recomputing or writing anything: the input and where its zero point, pixel scale "
                                       "and seeing came from, the stages done and their times, per source kind the "
                                       "binned and the model 50%% completeness magnitude with 68%% and 95%% intervals, "
@@ -203,7 +203,7 @@ def build_parser() -> argparse.ArgumentParser:
                                      "outcomes made elsewhere (Balrog, LSST source_injection, an earlier run): one row "
                                      "per injection with its true magnitude and whether it was detected, optionally "
                                      "its pixel position and the local detection noise. Writes the posterior, "
-                                     "summary.json and a figure to --out.")
+                                     f"{layout.SUMMARY} and a figure to --out.")
     fit.add_argument("outcomes", help="outcome table (FITS, or any format astropy reads)")
     fit.add_argument("--out", required=True, help="output folder (new or empty)")
     fit.add_argument("--kind", default="injections", help="label of the injected population (default injections)")
@@ -300,7 +300,7 @@ def _final_summary(result, log, report=None) -> None:
             text += (f"; {model['name']} posterior {fitted:.2f} "
                      f"[{model['m50']['lo68']:.2f}, {model['m50']['hi68']:.2f}] (68%)")
         log(text + f"  ({info['counts']['usable']} injections, {info['counts']['realizations']} realizations)")
-    log(f"done: outputs in {result.out_dir} (summary.json, catalogs/, maps/)")
+    log(f"done: outputs in {result.out_dir} ({layout.SUMMARY}, catalogs/, maps/)")
     if report is not None:
         log(f"report: {report}")
 

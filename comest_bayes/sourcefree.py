@@ -15,6 +15,7 @@ from scipy import ndimage
 
 from comest_bayes.config import SourceFreeConfig
 from comest_bayes.errors import InputError
+from comest_bayes.io import layout
 
 __all__ = ["SourceFreeResult", "build_source_free", "removal_radii", "dilated_footprint", "judge_replacement",
            "format_percent", "BACKGROUND_SHIFT_WARN_SIGMA", "NOISE_RATIO_WARN"]
@@ -451,10 +452,10 @@ def judge_replacement(meta: dict, *, on: str = "sfi", warn_fraction: float = 0.5
             f"than {BACKGROUND_SHIFT_WARN_SIGMA} sigma; its median level is "
             f"{'n/a' if level is None else f'{level:.4g}'}): the replaced "
             f"patches are {'fainter' if shift < 0 else 'brighter'} than the sky the detector measured; check "
-            f"background.fits and sfi.fits")
+            f"{layout.BACKGROUND} and {layout.SFI}")
     if ratio is not None and abs(ratio - 1.0) > NOISE_RATIO_WARN:
         out["warnings"].append(
             f"the noise drawn into the {target} is {ratio:.2f} times the detection's noise map (more than "
-            f"{100 * NOISE_RATIO_WARN:g}% off): the injections see another noise than the image's; check rms.fits "
-            f"and sfi.fits")
+            f"{100 * NOISE_RATIO_WARN:g}% off): the injections see another noise than the image's; check {layout.RMS} "
+            f"and {layout.SFI}")
     return out

@@ -4,6 +4,8 @@ stages and their times, per-kind m50 with intervals, the chosen model, warnings,
 
 from __future__ import annotations
 
+from comest_bayes.io import layout
+
 __all__ = ["format_info"]
 
 
@@ -64,7 +66,7 @@ def format_info(info: dict) -> str:
         nsims = cfg.get("nsims")
         lines.append("realizations on disk: " + ", ".join(f"{k} {n}/{nsims}" for k, n in info["realizations"].items()))
     if not info["kinds"]:
-        lines.append("results: none yet (no summary.json); rerun the same command to finish the run")
+        lines.append(f"results: none yet (no {layout.SUMMARY}); rerun the same command to finish the run")
     for kind, k in info["kinds"].items():
         c = k.get("counts") or {}
         lines.append(f"{kind}: {c.get('detected', 0)}/{c.get('usable', 0)} usable injections detected in "

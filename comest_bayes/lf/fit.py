@@ -161,7 +161,7 @@ def run_lf(run_dir, *, kind: str = "point", catalog=None, mag_column: str = "mag
     state = record.state
     scale = record.image_facts.get("pixel_scale_arcsec")
     if not scale:
-        raise InputError("run.json records no pixel scale (image.pixel_scale_arcsec); the area cannot be computed.")
+        raise InputError(f"{layout.RUN} records no pixel scale (image.pixel_scale_arcsec); the area cannot be computed.")
 
     # ---- inputs ------------------------------------------------------------------------
     from astropy.table import Table

@@ -551,7 +551,7 @@ def _injection_stages(run: RunDirectory, image: ImageData, det: DetectionResult,
     for kind in inj.kinds:
         done = [i for i in range(nsims[kind]) if realization_file(sims, kind, i).exists()]
         if not done:
-            log(f"warning: no realization of kind {kind!r} finished; it is left out of summary.json")
+            log(f"warning: no realization of kind {kind!r} finished; it is left out of {layout.SUMMARY}")
             continue
         merged = merge_realizations(sims, kind, done)
         stage_seconds[kind] = merged.pop("seconds")
@@ -684,7 +684,7 @@ def _point_size_check(image: ImageData, det: DetectionResult, matched, log, star
             f"{100 * check['tolerance']:.0f}%")
     else:
         log(f"warning: psf check: point: {said}: the injected point sources do not look like the image's stars; "
-            f"the completeness of point sources may be biased (see the 'psf' entry of run.json)")
+            f"the completeness of point sources may be biased (see the 'psf' entry of {layout.RUN})")
     return check
 
 

@@ -200,7 +200,7 @@ def _summary_section(r: _Report) -> None:
     run = r.run
     r.h2("summary", "Summary")
     if run.summary_record is None:
-        r.note("summary.json is missing: the injection stages of this run have not finished (rerun the same "
+        r.note(f"{layout.SUMMARY} is missing: the injection stages of this run have not finished (rerun the same "
                "command to resume); the report shows the stages done so far.")
         return
     rows = []
