@@ -673,7 +673,7 @@ def _region_estimate(post, grid, rule) -> tuple:
     """
     from comest_bayes.bayes.posterior import Footprint, average_prob, crossing_magnitudes
 
-    cells = post.cells if post.cells is not None else post._cells()
+    cells = post.cells if post.cells is not None else post.footprint_cells()
     sigma_ref = post.meta.get("sigma_ref")
     keep = np.ones(len(cells), bool)
     if sigma_ref and np.ptp(cells.depth) > 0:

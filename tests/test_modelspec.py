@@ -15,10 +15,10 @@ SHIPPED = ["auto", "auto_smooth", "logistic", "logistic_depth", "logistic_depth_
 
 
 def test_list_specs_finds_every_shipped_file():
-    from comest_bayes.bayes.spec import _models_dir
+    from comest_bayes.io.specfiles import models_dir
 
     assert list_specs() == sorted(SHIPPED)
-    files = {p.name for p in _models_dir().iterdir()}
+    files = {p.name for p in models_dir().iterdir()}
     assert {f"{n}.toml" for n in SHIPPED} <= files
     assert "README.md" in files  # the format documentation ships with the package
 

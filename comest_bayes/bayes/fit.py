@@ -147,7 +147,7 @@ def fit_task(task: dict) -> tuple:
                                footprints=footprints, noise_grid=noise_grid)
     entry["warnings"] = sorted(set(entry.get("warnings", [])) | {str(w.message) for w in caught})
     entry["cpu_seconds"] = round(time.process_time() - c0, 3)
-    post._model = None
+    post.use_model(None)  # the compiled model stays in this process
     return post, entry
 
 
@@ -317,7 +317,7 @@ def fit_kind(outcomes: Table, *, kind: str, quantity: str, requested: str, confi
         wcs_header=wcs_header, diagnostics={"sampler": diagnostics, "selection": selection, "warnings": warn},
         cells=cells,
     )
-    post._model = model  # the compiled model (same parameters as the spec's own layout): no second compile
+    post.use_model(model)  # the compiled model (same parameters as the spec's own layout): no second compile
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
         mags = post.summary_magnitudes()

@@ -26,8 +26,8 @@ Z_CLIP = 1e100
 # the derivative of softplus wrong at exactly 0; with where, each branch is a
 # smooth formula valid on its side, so derivatives are right everywhere.
 
-_softplus = softplus
-_logaddexp = logaddexp
+softplus = softplus
+safe_logaddexp = logaddexp
 
 
 def link_logs(z, link: str):
@@ -47,7 +47,7 @@ def link_logs(z, link: str):
     """
     z = jnp.clip(jnp.asarray(z, dtype=jnp.float64), -Z_CLIP, Z_CLIP)
     if link == "logistic":
-        log_g = -_softplus(-z)
+        log_g = -softplus(-z)
         return log_g, log_g - z
     if link == "probit":
         return log_ndtr(z), log_ndtr(-z)
@@ -85,12 +85,12 @@ def mixture_logs(log_g, log_1mg, *, log_A=None, log_1mA=None, log_floor=None, lo
     if log_floor is None:
         if log_A is None:
             return log_g, log_1mg
-        return log_A + log_g, _logaddexp(log_1mA + log_g, log_1mg)
+        return log_A + log_g, safe_logaddexp(log_1mA + log_g, log_1mg)
     la = 0.0 if log_A is None else log_A
-    log_f = _logaddexp(log_floor + log_1mg, la + log_g)
+    log_f = safe_logaddexp(log_floor + log_1mg, la + log_g)
     if log_A is None:
         return log_f, log_1mfloor + log_1mg
-    return log_f, _logaddexp(log_1mA + log_g, log_1mfloor + log_1mg)
+    return log_f, safe_logaddexp(log_1mA + log_g, log_1mfloor + log_1mg)
 
 
 def _safe_log(x):

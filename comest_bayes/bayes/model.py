@@ -20,7 +20,7 @@ from comest_bayes.errors import ConfigError, InputError
 from comest_bayes.bayes.spec import ModelSpec, load_spec
 from comest_bayes.bayes.shapes import SPLINE_H, SPLINE_T0, full_eta, monotone_spline, richards_logs
 from comest_bayes.bayes.bases import smooth_basis, smooth_basis_names
-from comest_bayes.bayes.links import Z_CLIP, _logaddexp, _softplus, link_logs, logistic_mixture_logs, mixture_logs
+from comest_bayes.bayes.links import Z_CLIP, safe_logaddexp, softplus, link_logs, logistic_mixture_logs, mixture_logs
 from comest_bayes.bayes.outcomes import BinomialData, Covariates, _COVARIATE_GROUPS, covariates_needed
 
 __all__ = ['CompletenessModel', 'THETA_BOUND', 'LOG_W_CLIP']
@@ -88,17 +88,17 @@ def _unpack(st: _Structure, theta):
          "log_floor": None, "log_1mfloor": None}
     if st.free_A:
         a = theta[sl["A"]]
-        p["log_A"] = -_softplus(-a)
-        p["log_1mA"] = -_softplus(a)
+        p["log_A"] = -softplus(-a)
+        p["log_1mA"] = -softplus(a)
     if st.free_floor:
         b = theta[sl["floor"]]
-        log_r, log_1mr = -_softplus(-b), -_softplus(b)
+        log_r, log_1mr = -softplus(-b), -softplus(b)
         if p["log_A"] is None:
             p["log_floor"], p["log_1mfloor"] = log_r, log_1mr
         else:
             # 1 - floor = (1 - A) + A (1 - r): a sum of positive terms, finite for any finite theta
             p["log_floor"] = p["log_A"] + log_r
-            p["log_1mfloor"] = _logaddexp(p["log_1mA"], p["log_A"] + log_1mr)
+            p["log_1mfloor"] = safe_logaddexp(p["log_1mA"], p["log_A"] + log_1mr)
     for key in ("beta_depth", "w_depth", "beta_size", "log_nu"):
         p[key] = theta[sl[key]]
     p["eta"] = theta[sl["eta"][0]:sl["eta"][1]]
@@ -114,7 +114,7 @@ def _m50_and_logw(st: _Structure, p, depth, size, basis):
     return m50, jnp.clip(log_w, -LOG_W_CLIP, LOG_W_CLIP)
 
 
-def _cell_logs(st: _Structure, theta, m, depth, size, basis):
+def cell_logs(st: _Structure, theta, m, depth, size, basis):
     """``log f`` and ``log(1 - f)`` at covariates, for the *full* parameter vector ``theta``."""
     p = _unpack(st, theta)
     m50, log_w = _m50_and_logw(st, p, depth, size, basis)
@@ -148,7 +148,7 @@ def _log_prior(st: _Structure, theta, prior):
     t = theta[normal]
     total = jnp.sum(active[normal] * (-0.5 * ((t - a[normal]) / b[normal]) ** 2 - lnorm[normal]))
     for j in beta_slots:  # Beta(a, b) on sigmoid(theta_j), with the Jacobian of the logit
-        total = total + active[j] * (-a[j] * _softplus(-theta[j]) - b[j] * _softplus(theta[j]) - lnorm[j])
+        total = total + active[j] * (-a[j] * softplus(-theta[j]) - b[j] * softplus(theta[j]) - lnorm[j])
     if st.n_knots:
         # first-order random walk of the knot log-rates outward from the anchor (eta = 0 at t = 0):
         # increments ~ N(0, tau^2 h); a proper Gaussian whose log-determinant is K log(tau^2 h)
@@ -162,7 +162,7 @@ def _log_prior(st: _Structure, theta, prior):
 
 def _log_likelihood(st: _Structure, theta, data):
     m, depth, size, basis, n, k = data
-    log_f, log_1mf = _cell_logs(st, theta, m, depth, size, basis)
+    log_f, log_1mf = cell_logs(st, theta, m, depth, size, basis)
     nk = n - k
     # 0 * (-inf) must count as 0: a cell with no failures does not care about log(1 - f);
     # padding cells (n = k = 0) contribute nothing.
@@ -197,7 +197,7 @@ def _log_prob_batch(st, thetas, data, prior, batch):
 
 
 def _cell_logs_batch(st, thetas, m, depth, size, basis):
-    lf, l1 = jax.vmap(lambda t: _cell_logs(st, t, m, depth, size, basis))(thetas)
+    lf, l1 = jax.vmap(lambda t: cell_logs(st, t, m, depth, size, basis))(thetas)
     return jnp.stack([lf, l1], axis=-1)
 
 
@@ -205,7 +205,7 @@ def _prob_m50_batch(st, thetas, m, depth, size, basis):
     def one(t):
         p = _unpack(st, t)
         m50, _ = _m50_and_logw(st, p, depth, size, basis)
-        log_f, _ = _cell_logs(st, t, m, depth, size, basis)
+        log_f, _ = cell_logs(st, t, m, depth, size, basis)
         return jnp.exp(log_f), m50
     return jax.vmap(one)(thetas)
 
@@ -213,7 +213,7 @@ def _prob_m50_batch(st, thetas, m, depth, size, basis):
 def _average_batch(st, thetas, mags, depth, size, basis, weight):
     """Weighted footprint average of f, shape (S, M); cells (P,) broadcast against magnitudes (M,)."""
     def one(t):
-        log_f, _ = _cell_logs(st, t, mags[None, :], depth[:, None], size[:, None], basis[:, None, :])
+        log_f, _ = cell_logs(st, t, mags[None, :], depth[:, None], size[:, None], basis[:, None, :])
         return weight @ jnp.exp(log_f)
     return jax.vmap(one)(thetas)
 
@@ -221,7 +221,7 @@ def _average_batch(st, thetas, mags, depth, size, basis, weight):
 def _average_at_batch(st, thetas, mags, depth, size, basis, weight):
     """Weighted footprint average of f for each (draw, magnitude) pair: shape (S,)."""
     def one(t, mag):
-        log_f, _ = _cell_logs(st, t, mag, depth, size, basis)
+        log_f, _ = cell_logs(st, t, mag, depth, size, basis)
         return weight @ jnp.exp(log_f)
     return jax.vmap(one)(thetas, mags)
 
@@ -229,7 +229,7 @@ def _average_at_batch(st, thetas, mags, depth, size, basis, weight):
 def _cell_grads(st, theta, m, depth, size, basis):
     """Gradients of every cell's log f and log(1 - f) with respect to the full theta: (G, 2, D)."""
     def logs(t):
-        lf, l1 = _cell_logs(st, t, m, depth, size, basis)
+        lf, l1 = cell_logs(st, t, m, depth, size, basis)
         return jnp.stack([lf, l1], axis=-1)
     return jax.jacfwd(logs)(theta), logs(theta)
 
@@ -477,7 +477,7 @@ class CompletenessModel:
             tail = np.repeat(x[-1:], pad, axis=0) if fill is None else np.full((pad,) + x.shape[1:], fill)
             return jnp.asarray(np.concatenate([x, tail]))
 
-        self._data = (padded(cov.m), padded(cov.depth), padded(cov.size), padded(self._basis(cov)),
+        self._data = (padded(cov.m), padded(cov.depth), padded(cov.size), padded(self.basis(cov)),
                       padded(data.n, 0.0), padded(data.k, 0.0))
         self._ncells = g
 
@@ -500,7 +500,13 @@ class CompletenessModel:
         return (jnp.asarray(a), jnp.asarray(b), jnp.asarray(lnorm), jnp.asarray(active),
                 jnp.asarray(math.log(self._tau)))
 
-    def _basis(self, cov: Covariates) -> np.ndarray:
+    @property
+    def structure(self) -> _Structure:
+        """Which terms the compiled density has (shared by every model of one layout)."""
+        return self._st
+
+    def basis(self, cov: Covariates) -> np.ndarray:
+        """The smooth spatial basis at the covariates' ``(u, v)``, shape (N, J) (J = 0 without a smooth term)."""
         n_smooth = self._st.n_smooth if hasattr(self, "_st") else 0
         if not n_smooth:
             return np.zeros((len(cov), 0))
@@ -519,11 +525,11 @@ class CompletenessModel:
 
     def cell_logs(self, theta, m, depth, size, basis):
         """Traceable ``(log f, log(1 - f))`` at covariates for free parameters ``theta`` (JAX arrays)."""
-        return _cell_logs(self._st, self.full_jax(theta), m, depth, size, basis)
+        return cell_logs(self._st, self.full_jax(theta), m, depth, size, basis)
 
     def basis_at(self, cov: Covariates) -> np.ndarray:
         """The smooth basis columns of the layout at covariates (N, J)."""
-        return self._basis(cov)
+        return self.basis(cov)
 
     def _theta(self, theta) -> jnp.ndarray:
         t = np.asarray(theta, dtype=np.float64)
@@ -653,7 +659,7 @@ class CompletenessModel:
         mags = jnp.asarray(np.concatenate([mags, np.full(size - nm, mags[-1])]))
         p = len(weight)
         cov = Covariates.make(np.zeros(p), depth, u, v)
-        args = (jnp.asarray(cov.depth), jnp.asarray(cov.size), jnp.asarray(self._basis(cov)),
+        args = (jnp.asarray(cov.depth), jnp.asarray(cov.size), jnp.asarray(self.basis(cov)),
                 jnp.asarray(np.asarray(weight, np.float64)))
         chunk = int(max(1, min(len(t), max_elements // max(1, p * mags.shape[0]))))
         chunk = 1 << int(math.floor(math.log2(chunk)))  # a power of two: few compiled shapes
@@ -678,7 +684,7 @@ class CompletenessModel:
         tp = np.concatenate([t, np.repeat(t[-1:], size - s, axis=0)])
         mp = np.concatenate([mags, np.full(size - s, mags[-1])])
         out = _jit_average_at_batch(self._st, jnp.asarray(tp), jnp.asarray(mp), jnp.asarray(cov.depth),
-                                    jnp.asarray(cov.size), jnp.asarray(self._basis(cov)),
+                                    jnp.asarray(cov.size), jnp.asarray(self.basis(cov)),
                                     jnp.asarray(np.asarray(weight, np.float64)))
         return np.clip(np.asarray(out)[:s], 0.0, 1.0)
 
@@ -689,7 +695,7 @@ class CompletenessModel:
         t = np.asarray(theta, dtype=np.float64)
         single = t.ndim == 1
         t2 = self.full(self._thetas(t[None, :] if single else t))
-        basis = jnp.asarray(self._basis(cov))
+        basis = jnp.asarray(self.basis(cov))
         f, m50 = _jit_prob_m50_batch(self._st, jnp.asarray(t2), jnp.asarray(cov.m), jnp.asarray(cov.depth),
                                      jnp.asarray(cov.size), basis)
         f, m50 = np.asarray(f), np.asarray(m50)

@@ -389,6 +389,13 @@ class CompletenessPosterior:
     cells: Footprint | None = None
     _model: CompletenessModel | None = field(default=None, repr=False, compare=False)
 
+    def use_model(self, model: CompletenessModel | None) -> None:
+        """Evaluate with an already compiled ``model`` (its parameters must be the spec's); None drops it
+        (e.g. before the posterior is sent to another process, which rebuilds it on first use)."""
+        if model is not None and list(model.names) != list(self.names):
+            raise InputError(f"the model's parameters {model.names} are not the posterior's {self.names}.")
+        self._model = model
+
     # ---- evaluation -------------------------------------------------------------
     @property
     def model(self) -> CompletenessModel:
@@ -514,9 +521,10 @@ class CompletenessPosterior:
 
     def average_curve(self, mags, *, nsamples: int | None = 1000) -> np.ndarray:
         """Image-average f(m) per draw, shape (S, M): exact over every unmasked pixel (:class:`Footprint`)."""
-        return self._average_of(self._draws(nsamples), mags)
+        return self.average_of(self._draws(nsamples), mags)
 
-    def _cells(self) -> Footprint:
+    def footprint_cells(self) -> Footprint:
+        """Every unmasked pixel as weighted covariate cells (the exact image average)."""
         if self.cells is not None:
             return self.cells
         # a posterior saved before footprints were exact: the mean over its position sample
@@ -526,8 +534,9 @@ class CompletenessPosterior:
                          v=2.0 * pos[:, 1] / max(ny - 1, 1) - 1.0, weight=np.full(len(pos), 1.0 / len(pos)),
                          npix=len(pos))
 
-    def _average_of(self, thetas, mags) -> np.ndarray:
-        return average_prob(self.model, thetas, np.atleast_1d(np.asarray(mags, float)), self._cells())
+    def average_of(self, thetas, mags) -> np.ndarray:
+        """Image-average f(m) for given parameter draws ``thetas`` (S, D), shape (S, M)."""
+        return average_prob(self.model, thetas, np.atleast_1d(np.asarray(mags, float)), self.footprint_cells())
 
     def curve(self, mags, *, x=None, y=None, ra=None, dec=None, nsamples: int | None = 1000) -> dict:
         """Median and 68% / 95% bands of f(m) (image average, or at a position)."""
@@ -547,7 +556,7 @@ class CompletenessPosterior:
         """
         thetas = self._draws(nsamples)
         lo, hi = self.meta.get("mag_range", (15.0, 30.0))
-        return average_crossings(self.model, thetas, self._cells(), levels, lo, hi, xtol=min(step, 1e-3))
+        return average_crossings(self.model, thetas, self.footprint_cells(), levels, lo, hi, xtol=min(step, 1e-3))
 
     def summary_magnitudes(self, levels=(0.5, 0.8, 0.9)) -> dict:
         """JSON-ready medians, 68% and 95% intervals of m50, m80, m90.

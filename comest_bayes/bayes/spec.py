@@ -10,18 +10,12 @@ from __future__ import annotations
 
 import difflib
 import math
-import sys
 from dataclasses import dataclass, field, fields, replace
-from importlib import resources
 from pathlib import Path
 from typing import Any, Mapping
 
-if sys.version_info >= (3, 11):
-    import tomllib
-else:  # pragma: no cover - exercised on Python 3.10 only
-    import tomli as tomllib
-
 from comest_bayes.errors import ConfigError
+from comest_bayes.io.specfiles import list_spec_names, read_spec_toml
 
 __all__ = [
     "ModelSpec",
@@ -302,32 +296,9 @@ def _validate_priors(priors: dict, spec: ModelSpec) -> dict:
 _SPEC_KEYS = {f.name for f in fields(ModelSpec)} - {"source"}
 
 
-def _models_dir():
-    """The folder of the shipped specifications.
-
-    Installed, it is the package ``comest_bayes.models`` (the repository's top-level ``models/``
-    mapped into the wheel).  When ``comest_bayes`` is imported from a source checkout instead (for
-    example ``python -m pytest`` in the repository after a non-editable install), that subpackage
-    does not exist there and the checkout's ``models/`` folder is used.
-    """
-    try:
-        return resources.files("comest_bayes.models")
-    except ModuleNotFoundError:
-        here = Path(__file__).resolve().parent.parent / "models"
-        if here.is_dir():
-            return here
-        raise
-
-
 def list_specs() -> list[str]:
-    """Names of the specifications shipped with the package (sorted).
-
-    Returns
-    -------
-    list of str
-        Stems of the ``*.toml`` files of ``comest_bayes.models``.
-    """
-    return sorted(p.name[:-5] for p in _models_dir().iterdir() if p.name.endswith(".toml"))
+    """Names of the specifications shipped with the package (sorted): the stems of ``models/*.toml``."""
+    return list_spec_names()
 
 
 def spec_from_mapping(mapping: Mapping[str, Any], *, name: str | None = None, source: str = "") -> ModelSpec:
@@ -398,35 +369,7 @@ def load_spec(name_or_path) -> ModelSpec:
     """
     if isinstance(name_or_path, ModelSpec):
         return name_or_path
-    if not isinstance(name_or_path, (str, Path)):
-        raise ConfigError(f"model spec must be a name or a path, got {name_or_path!r}.")
-    text = str(name_or_path)
-    looks_like_path = isinstance(name_or_path, Path) or text.endswith(".toml") or "/" in text or "\\" in text
-    if looks_like_path or (Path(text).is_file() and text not in list_specs()):
-        path = Path(text)
-        if not path.is_file():
-            raise ConfigError(f"model spec file {text!r} does not exist; give an existing TOML file or one "
-                              f"of the shipped specs {list_specs()}.")
-        try:
-            raw = path.read_bytes()
-        except OSError as exc:
-            raise ConfigError(f"model spec file {text!r} cannot be read: {exc}.") from None
-        return _parse(raw, name=path.stem, source=str(path))
-    available = list_specs()
-    if text not in available:
-        close = difflib.get_close_matches(text, available, n=1)
-        hint = f" Did you mean {close[0]!r}?" if close else ""
-        raise ConfigError(f"unknown model spec {text!r}; available specs: {available} (or give the path of a "
-                          f"TOML file).{hint}")
-    res = _models_dir() / f"{text}.toml"
-    return _parse(res.read_bytes(), name=text, source=f"models/{text}.toml")
-
-
-def _parse(raw: bytes, *, name: str, source: str) -> ModelSpec:
-    try:
-        data = tomllib.loads(raw.decode("utf-8"))
-    except (tomllib.TOMLDecodeError, UnicodeDecodeError) as exc:
-        raise ConfigError(f"model spec file {source!r} is not valid TOML: {exc}.") from None
+    data, name, source = read_spec_toml(name_or_path, what="model spec")
     return spec_from_mapping(data, name=name, source=source)
 
 

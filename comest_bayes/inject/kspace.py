@@ -9,7 +9,7 @@ from dataclasses import dataclass, field
 from functools import lru_cache
 import galsim
 import numpy as np
-from comest_bayes.inject.profiles import _growth_curve, _unit_exponential, _unit_sersic
+from comest_bayes.inject.profiles import growth_curve, unit_exponential, unit_sersic
 
 __all__ = ['BATCHED_KINDS', 'DEV_K_STEP', 'RadialKTable', 'devaucouleurs_k_table', 'exponential_k', 'buldisk_k', 'buldisk_radius_per_hlr', 'shear_matrices', 'kspace_quadratic_forms']
 
@@ -62,7 +62,7 @@ class RadialKTable:
 def _dev_k_table(kmax: float) -> RadialKTable:
     m = int(np.ceil(kmax / DEV_K_STEP)) + 2
     kimage = galsim.ImageCD(galsim.BoundsI(0, m - 1, 0, 0), scale=DEV_K_STEP)  # kx = i * step, ky = 0
-    _unit_sersic(4.0, True).drawKImage(image=kimage, recenter=False)
+    unit_sersic(4.0, True).drawKImage(image=kimage, recenter=False)
     values = np.ascontiguousarray(kimage.array[0].real, dtype=np.float64)
     values.setflags(write=False)
     return RadialKTable(DEV_K_STEP, values)
@@ -108,7 +108,7 @@ def exponential_k(ksq: np.ndarray) -> np.ndarray:
     -------
     ndarray of float64, same shape
     """
-    r_s = _unit_exponential().scale_radius
+    r_s = unit_exponential().scale_radius
     t = np.multiply(ksq, r_s * r_s)
     t += 1.0
     root = np.sqrt(t)
@@ -172,8 +172,8 @@ def buldisk_radius_per_hlr(bulge_fraction, fraction: float = 0.995) -> np.ndarra
     ndarray, shape (n,)
     """
     bf = np.atleast_1d(np.asarray(bulge_fraction, dtype=float))
-    x, fb = _growth_curve(4.0)
-    _, fd = _growth_curve(1.0)
+    x, fb = growth_curve(4.0)
+    _, fd = growth_curve(1.0)
     # vectorised binary search for the first index with bf * fb + (1 - bf) * fd >= fraction: the
     # combined curve is non-decreasing, so this is np.searchsorted(combined, fraction) per source
     lo = np.zeros(bf.shape, dtype=np.intp)

@@ -99,7 +99,7 @@ def _trunc_factor(n: float) -> float:
 
 
 @lru_cache(maxsize=256)
-def _growth_curve(n: float) -> tuple[np.ndarray, np.ndarray]:
+def growth_curve(n: float) -> tuple[np.ndarray, np.ndarray]:
     """Enclosed-flux fraction of our (truncated) unit-half-light-radius Sersic of index ``n``.
 
     Scale-free: with the truncation a fixed multiple of the half-light radius,
@@ -116,7 +116,7 @@ def _growth_curve(n: float) -> tuple[np.ndarray, np.ndarray]:
     if t == 0.0:
         r0, total = 1.0 / sersic_b(n) ** n, 1.0
     else:
-        r0 = _unit_sersic(n).scale_radius
+        r0 = unit_sersic(n).scale_radius
         total = gammainc(2.0 * n, (t / r0) ** (1.0 / n))
     x = np.linspace(0.0, 60.0, 6001)
     frac = np.minimum(gammainc(2.0 * n, (x / r0) ** (1.0 / n)) / total, 1.0)
@@ -127,22 +127,22 @@ def _growth_curve(n: float) -> tuple[np.ndarray, np.ndarray]:
 
 def _radius_per_hlr(n: float, fraction: float) -> float:
     """Radius enclosing ``fraction`` of our (truncated) Sersic, in half-light radii."""
-    x, frac = _growth_curve(float(n))
+    x, frac = growth_curve(float(n))
     k = min(int(np.searchsorted(frac, fraction)), x.size - 1)
     return float(x[k])
 
 
 def _buldisk_radius_per_hlr(bulge_fraction: float, fraction: float) -> float:
     """Radius enclosing ``fraction`` of bulge + disk of equal half-light radius, in half-light radii."""
-    x, fb = _growth_curve(4.0)
-    _, fd = _growth_curve(1.0)
+    x, fb = growth_curve(4.0)
+    _, fd = growth_curve(1.0)
     combined = bulge_fraction * fb + (1.0 - bulge_fraction) * fd
     k = min(int(np.searchsorted(combined, fraction)), x.size - 1)
     return float(x[k])
 
 
 @lru_cache(maxsize=512)
-def _unit_sersic(n: float, devaucouleurs: bool = False):
+def unit_sersic(n: float, devaucouleurs: bool = False):
     """Our (truncated) Sersic of index ``n`` with half-light radius 1 and flux 1, built once.
 
     Every source is a transformation (``dilate``, ``withFlux``, shear) of one
@@ -157,13 +157,13 @@ def _unit_sersic(n: float, devaucouleurs: bool = False):
 
 
 @lru_cache(maxsize=1)
-def _unit_exponential():
+def unit_exponential():
     return galsim.Exponential(half_light_radius=1.0)
 
 
 def _sersic(n: float, hlr: float, flux: float, *, devaucouleurs: bool = False):
-    """Sersic of index ``n``, half-light radius ``hlr`` and total ``flux`` (see :func:`_unit_sersic`)."""
-    return _unit_sersic(float(n), devaucouleurs).dilate(hlr).withFlux(flux)
+    """Sersic of index ``n``, half-light radius ``hlr`` and total ``flux`` (see :func:`unit_sersic`)."""
+    return unit_sersic(float(n), devaucouleurs).dilate(hlr).withFlux(flux)
 
 
 @dataclass
@@ -207,7 +207,7 @@ def bulge_disk_components(hlr: float, bulge_fraction: float, flux: float = 1.0):
         flux ``(1 - bulge_fraction) * flux``.
     """
     bulge = _sersic(4.0, hlr, bulge_fraction * flux, devaucouleurs=True)
-    disk = _unit_exponential().dilate(hlr).withFlux((1.0 - bulge_fraction) * flux)
+    disk = unit_exponential().dilate(hlr).withFlux((1.0 - bulge_fraction) * flux)
     return bulge, disk
 
 

@@ -337,7 +337,7 @@ def psf_enclosed_radius_pix(psf_pix, fraction: float = 0.995,
     m_cap = min(int(np.ceil(max_radius * k)) + 1, _ENCLOSED_MAX_SAMPLES // 2)
     m = min(max(psf_pix.getGoodImageSize(step), 64 * k) // 2, m_cap)
     while True:
-        r_sorted, cum = _growth_curve(psf_pix, m, step, flux)
+        r_sorted, cum = growth_curve(psf_pix, m, step, flux)
         trusted = min(m * step, max_radius)  # whole circles inside the drawing
         usable = int(np.searchsorted(r_sorted, trusted, side="right"))
         i = int(np.searchsorted(cum[:usable], fraction))
@@ -353,7 +353,7 @@ def psf_enclosed_radius_pix(psf_pix, fraction: float = 0.995,
     m = max(int(np.ceil(2.0 * r_core)), 32)
     m_cap = int(np.ceil(max_radius)) + 1
     while True:
-        r_sorted, cum = _growth_curve(psf_pix, m, 1.0, flux, inner=r_core)
+        r_sorted, cum = growth_curve(psf_pix, m, 1.0, flux, inner=r_core)
         cum = core + cum
         trusted = min(float(m), max_radius)
         usable = int(np.searchsorted(r_sorted, trusted, side="right"))
@@ -404,7 +404,7 @@ def point_stamp_size(psf, pixel_scale: float, flux_fraction: float = 0.995) -> d
             "flux_fraction": float(flux_fraction), "capped": capped, "source": source}
 
 
-def _growth_curve(psf_pix, m: int, step: float, flux: float, inner: float = 0.0):
+def growth_curve(psf_pix, m: int, step: float, flux: float, inner: float = 0.0):
     """Radii (pixels) of the samples of a ``(2m + 1)^2`` drawing of step ``step`` and their cumulative flux.
 
     Sorted by radius; only samples beyond ``inner`` pixels are kept.  The

@@ -10,10 +10,7 @@ from __future__ import annotations
 
 import difflib
 import math
-import sys
 from dataclasses import dataclass, field
-from importlib import resources
-from pathlib import Path
 from typing import Any, Mapping
 
 import numpy as np
@@ -21,11 +18,7 @@ import numpy as np
 from comest_bayes.jaxnum import jnp  # float64 on (the one place that sets it)
 
 from comest_bayes.errors import ConfigError  # noqa: E402
-
-if sys.version_info >= (3, 11):  # pragma: no cover - version dependent
-    import tomllib
-else:  # pragma: no cover
-    import tomli as tomllib
+from comest_bayes.io.specfiles import list_spec_names, read_spec_toml  # noqa: E402
 
 __all__ = ["FORMS", "CountSpec", "CountModel", "list_count_specs", "load_count_spec", "count_spec_from_mapping",
            "log_phi"]
@@ -187,18 +180,9 @@ def count_spec_from_mapping(mapping: Mapping[str, Any], *, name: str | None = No
     return CountSpec(name=str(nm), form=form, constants=consts, priors=priors, description=str(desc), source=source)
 
 
-def _counts_dir():
-    """The folder of the shipped count specs (``comest_bayes.models`` / counts, or the checkout's models/counts)."""
-    try:
-        return resources.files("comest_bayes.models") / "counts"
-    except ModuleNotFoundError:
-        return Path(__file__).resolve().parent.parent / "models" / "counts"
-
-
 def list_count_specs() -> list[str]:
-    """Names of the shipped count-model specifications (sorted)."""
-    d = _counts_dir()
-    return sorted(p.name[:-5] for p in d.iterdir() if p.name.endswith(".toml"))
+    """Names of the shipped count-model specifications (sorted): the stems of ``models/counts/*.toml``."""
+    return list_spec_names("counts")
 
 
 def load_count_spec(name_or_path) -> CountSpec:
@@ -211,28 +195,8 @@ def load_count_spec(name_or_path) -> CountSpec:
     """
     if isinstance(name_or_path, CountSpec):
         return name_or_path
-    if not isinstance(name_or_path, (str, Path)):
-        raise ConfigError(f"count model must be a name or a TOML path, got {name_or_path!r}.")
-    text = str(name_or_path)
-    if isinstance(name_or_path, Path) or text.endswith(".toml") or "/" in text or "\\" in text:
-        path = Path(text)
-        if not path.is_file():
-            raise ConfigError(f"count model file {text!r} does not exist; give an existing TOML file or one of the "
-                              f"shipped count models {list_count_specs()}.")
-        raw, nm, source = path.read_bytes(), path.stem, str(path)
-    else:
-        available = list_count_specs()
-        if text not in available:
-            close = difflib.get_close_matches(text, available, n=1)
-            hint = f" Did you mean {close[0]!r}?" if close else ""
-            raise ConfigError(f"unknown count model {text!r}; available: {available} (or the path of a TOML "
-                              f"file).{hint}")
-        raw, nm, source = (_counts_dir() / f"{text}.toml").read_bytes(), text, f"models/counts/{text}.toml"
-    try:
-        data = tomllib.loads(raw.decode("utf-8"))
-    except (tomllib.TOMLDecodeError, UnicodeDecodeError) as exc:
-        raise ConfigError(f"count model file {source!r} is not valid TOML: {exc}.") from None
-    return count_spec_from_mapping(data, name=nm, source=source)
+    data, name, source = read_spec_toml(name_or_path, what="count model", sub="counts")
+    return count_spec_from_mapping(data, name=name, source=source)
 
 
 @dataclass

@@ -171,7 +171,7 @@ def _spatial(post) -> bool:
 def _positions_cov(post, x, y):
     """Depth (P, 1), size (P, 1) and smooth basis (P, 1, J) at pixel positions, for the JAX link."""
     cov = post.covariates(np.zeros(len(x)), x, y)
-    basis = post.model._basis(cov)
+    basis = post.model.basis(cov)
     return cov.depth[:, None], np.zeros((len(x), 1)), basis[:, None, :]
 
 
@@ -183,13 +183,13 @@ def _cells_cov(post):
     """
     from comest_bayes.bayes.outcomes import Covariates
 
-    cells = post._cells()
+    cells = post.footprint_cells()
     if not _spatial(post):
         depth, u, v, weight = cells.depth[:1], cells.u[:1], cells.v[:1], np.ones(1)
     else:
         depth, u, v, weight = cells.depth, cells.u, cells.v, np.asarray(cells.weight, float)
     cov = Covariates.make(np.zeros(len(depth)), depth, u, v)
-    basis = post.model._basis(cov)
+    basis = post.model.basis(cov)
     return cov.depth[:, None], np.zeros((len(depth), 1)), basis[:, None, :], weight / weight.sum()
 
 
@@ -241,7 +241,7 @@ def completeness_arrays(post, thetas, inputs: LFInputs, *, objects: bool = True,
     if not _spatial(post):
         f = post.model.prob(thetas, post.covariates(grid, 0.0, 0.0)).reshape(len(thetas), 1, grid.size)
         return (f if objects else None), f[:, 0, :].copy()
-    fb = post._average_of(thetas, grid)
+    fb = post.average_of(thetas, grid)
     if not objects:
         return None, fb
     if inputs.x is None:
@@ -356,9 +356,9 @@ class LFModel:
             def logprior(theta):
                 return lp_count(theta)
         else:
-            from comest_bayes.bayes.model import _cell_logs
+            from comest_bayes.bayes.model import cell_logs
 
-            st = post.model._st
+            st = post.model.structure
             # the sampled completeness parameters are the model's free ones (as in its posterior draws);
             # the link takes the full layout, with pinned slots (e.g. beta_depth of a model without depth)
             full = post.model.full_jax
@@ -384,7 +384,7 @@ class LFModel:
                 dnodes, idx, frac = _depth_nodes(obj_depth, depth_nodes)
                 ncov = Covariates.make(np.zeros(dnodes.size), dnodes, 0.0, 0.0)
                 od, os_ = dnodes[:, None], np.zeros((dnodes.size, 1))
-                ob = post.model._basis(ncov)[:, None, :]
+                ob = post.model.basis(ncov)[:, None, :]
                 interp = (jnp.asarray(idx), jnp.asarray(frac))
                 self.depth_nodes = dnodes
             elif per_object:
@@ -398,7 +398,7 @@ class LFModel:
 
             def lam(theta, data):
                 w_in, fd, fs, fb, fw = data[1], data[5], data[6], data[7], data[10]
-                logf_foot, _ = _cell_logs(st, full(theta[pc:]), mrow, fd, fs, fb)
+                logf_foot, _ = cell_logs(st, full(theta[pc:]), mrow, fd, fs, fb)
                 f_bar = fw @ jnp.exp(logf_foot)
                 return jnp.exp(log_area) * jnp.sum(jnp.exp(lphi(theta[:pc], grid)) * f_bar * w_in)
 
@@ -408,15 +408,15 @@ class LFModel:
                 lp = lphi(t, grid)
                 mx = jnp.max(lp)
                 e = jnp.exp(lp - mx)
-                logf_foot, _ = _cell_logs(st, c, mrow, fd, fs, fb)  # (P, M)
+                logf_foot, _ = cell_logs(st, c, mrow, fd, fs, fb)  # (P, M)
                 f_bar = fw @ jnp.exp(logf_foot)
                 if nodes:
-                    f_nodes = jnp.exp(_cell_logs(st, c, mrow, od, os_, ob)[0])  # (G, M)
+                    f_nodes = jnp.exp(cell_logs(st, c, mrow, od, os_, ob)[0])  # (G, M)
                     i, u = interp
                     f_obj = (1.0 - u)[:, None] * f_nodes[i] + u[:, None] * f_nodes[i + 1]  # (N, M)
                     s = jnp.log(jnp.sum(k_dt * f_obj * e[None, :], axis=1)) + mx
                 elif per_object:
-                    f_obj = jnp.exp(_cell_logs(st, c, mrow, od, os_, ob)[0])  # (N, M)
+                    f_obj = jnp.exp(cell_logs(st, c, mrow, od, os_, ob)[0])  # (N, M)
                     s = jnp.log(jnp.sum(k_dt * f_obj * e[None, :], axis=1)) + mx
                 else:
                     f_row = f_bar if avg_objects else jnp.exp(logf_foot[0])
