@@ -340,7 +340,6 @@ def test_compression_cells_hold_member_means():
         assert comp.n[c] == members.sum() and comp.k[c] == y[members].sum()
         assert comp.cov.m[c] == pytest.approx(cov.m[members].mean(), rel=1e-13)
         assert comp.cov.u[c] == pytest.approx(cov.u[members].mean(), abs=1e-13)
-        assert np.all(y[members] == y[members][0])  # split_outcomes: one outcome per cell
     assert np.all(np.abs(np.diff(cov.m[idx == 0])) < 0.1 + 1e-12) or comp.n[0] == 1
 
 
@@ -365,31 +364,36 @@ def test_compressed_likelihood_agrees_with_unbinned(big, spec):
     for shift in (0.0, 0.03):
         theta = theta_true + shift
         assert abs(comp.log_likelihood(theta) - full.log_likelihood(theta)) < tol
-    # MAP-relevant: the gradient difference moves the optimum by H^-1 dg; require < 0.02 posterior sigma
-    # at 200,000 injections (measured 0.012 and 0.014 sigma, on log w).
+    # MAP-relevant: the gradient difference moves the optimum by H^-1 dg.  Cells hold both outcomes at
+    # their members' mean covariates (cells do not depend on the outcomes), so the compressed likelihood
+    # is that of slightly coarsened data: the MAP moves by a random amount whose sd is about the square
+    # root of the fraction of information lost (for beta_depth ~ (0.1 / 0.18)^2 / 12 of the depth
+    # spread: ~0.1 sigma) plus a second-order bias (log w by ~dm^2 / (8 pi^2 w^2) of itself).  Measured
+    # at 200,000 injections: at most 0.035 (logistic) and 0.057 (logistic_depth, beta_depth) sigma.
+    # Required: < 0.15 sigma, below the third of a sigma at which an offset would matter to intervals.
     _, g_full = full.value_and_grad(theta_true)
     _, g_comp = comp.value_and_grad(theta_true)
     hess = full.hessian(theta_true)
     cov_post = np.linalg.inv(-hess)
     shift = cov_post @ (g_comp - g_full)
-    assert np.all(np.abs(shift) / np.sqrt(np.diag(cov_post)) < 0.02)
+    assert np.all(np.abs(shift) / np.sqrt(np.diag(cov_post)) < 0.15)
     if spec == "logistic":
-        assert comp_data.ncells <= 2 * 351  # 7 mag / 0.02 = 350 magnitude bins, times 2 outcomes at most
+        assert comp_data.ncells <= 351  # 7 mag / 0.02 = 350 magnitude bins at most
 
 
 def test_cell_count_is_bounded_independently_of_n():
-    # 7 mag range / dm = 0.02 -> at most 350 bins, each split by outcome -> 700 cells (fewer: the step
-    # grows to dm_max on the plateau and the floor), whatever N.
+    # 7 mag range / dm = 0.02 -> at most 350 cells (fewer: the step grows to dm_max on the plateau
+    # and the floor), whatever N.
     small = compress_for("logistic", *synthetic(10_000, 13))
     large = compress_for("logistic", *synthetic(1_000_000, 14))
-    assert large.ncells <= 2 * 351 and small.ncells <= 2 * 351
+    assert large.ncells <= 351 and small.ncells <= 351
     assert large.ntotal == 1_000_000
     # with depth resolved too, cells are bounded by the occupied (m - depth, depth) grid, not by N
     cov14 = synthetic(1_000_000, 14)[0]
     lo, hi = cov14.depth.min(), cov14.depth.max()
     span = (cov14.m - cov14.depth).max() - (cov14.m - cov14.depth).min()
     large_d = compress_for("logistic_depth", *synthetic(1_000_000, 14))
-    assert large_d.ncells <= 2 * (math.ceil(span / 0.02) + 1) * (math.ceil((hi - lo) / 0.1) + 1)
+    assert large_d.ncells <= (math.ceil(span / 0.02) + 1) * (math.ceil((hi - lo) / 0.1) + 1)
     assert set(large_d.meta["binned"]) == {"m", "depth"}
 
 
@@ -397,8 +401,8 @@ def test_magnitude_step_grows_where_outcomes_do_not_mix():
     # Truth: m50 = 24 (+ depth), w = 0.2, plateau 0.95, floor 0.01, injected over 20-27 mag; the magnitude grid
     # alone (no depth resolved).  The step is dm sqrt(0.25 / p(1 - p)) of the local detected fraction p,
     # within [dm, dm_max]: ~0.046 mag on the plateau (p = 0.95), the full 0.1 on the floor (p = 0.01), and
-    # dm = 0.02 through the transition.  Measured as the span of each cell's members (one outcome class per
-    # cell, split_outcomes), so a cell spans at most its step.
+    # dm = 0.02 through the transition.  Measured as the span of each cell's members, so a cell spans at
+    # most its step.
     cov, y = synthetic(200_000, 21)
     fine = compress(cov, y, dm=0.02, ddepth=None, nuv=None, dsize=None)
     grown = compress(cov, y, dm=0.02, ddepth=None, nuv=None, dsize=None, dm_max=0.1)

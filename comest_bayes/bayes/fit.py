@@ -19,7 +19,7 @@ from comest_bayes.ratios import binned as R
 from comest_bayes.bayes.checks import shape_check, shape_warning
 from comest_bayes.config import RunConfig
 from comest_bayes.errors import InputError
-from comest_bayes.bayes.inference import fit, fit_map
+from comest_bayes.bayes.inference import IdentifiabilityWarning, fit, fit_map
 from comest_bayes.io.jsonio import dumps
 from comest_bayes.bayes.model import CompletenessModel
 from comest_bayes.bayes.outcomes import compress_for, covariate_warnings, covariates_from_outcomes
@@ -244,6 +244,14 @@ def fit_kind(outcomes: Table, *, kind: str, quantity: str, requested: str, confi
                     f"{quantity} curve is not constrained on one side (its posterior there is the prior)")
     for w in warn:
         warnings.warn(w, UserWarning, stacklevel=2)
+    if outcome.any() and not outcome.all():
+        m_pos, m_neg = cov.m[outcome], cov.m[~outcome]
+        if m_pos.max() < m_neg.min() or m_neg.max() < m_pos.min():
+            warnings.warn(f"the {kind} {quantity} outcomes are perfectly separated in magnitude (every injection "
+                          f"on one side of a magnitude is positive, every one on the other negative): the data "
+                          f"only bound the transition width from above, and its value (and the posterior's "
+                          f"lower tail) is set by the prior on w. Inject more sources around m50 or treat w as "
+                          f"an upper limit.", IdentifiabilityWarning, stacklevel=2)
     data = compress_for(spec, cov, outcome, meta=meta)
     seed = int_seed_for(config.seed, "fit", quantity, kind)
     candidates = resolve_candidates(spec) if spec.is_selection else [spec]

@@ -396,7 +396,7 @@ def _magnitude_index(x: np.ndarray, det: np.ndarray, dm: float, dm_max: float | 
 
 def compress(cov: Covariates, detected, *, dm: float | None = 0.005, ddepth: float | None = 0.005,
              nuv: int | None = 64, dsize: float | None = 0.01, meta: dict | None = None,
-             split_outcomes: bool = True, along_depth: bool = False, dm_max: float | None = None) -> BinomialData:
+             along_depth: bool = False, dm_max: float | None = None) -> BinomialData:
     """Group injections into binomial cells on a fine covariate grid.
 
     Parameters
@@ -415,12 +415,6 @@ def compress(cov: Covariates, detected, *, dm: float | None = 0.005, ddepth: flo
         ``None`` leaves position unresolved.
     meta : dict, optional
         Metadata to carry (e.g. from :func:`covariates_from_outcomes`).
-    split_outcomes : bool
-        If True (default), detected and undetected members of a grid cell
-        form two cells, each with the mean covariates of its own members.
-        This makes the first-order binning error vanish identically (see the
-        module notes) at the cost of at most doubling the cells in the
-        transition region.
     dm_max : float or None
         Largest magnitude step (default None: ``dm`` everywhere).  With it,
         the step grows from ``dm`` where detected and missed injections mix
@@ -445,13 +439,19 @@ def compress(cov: Covariates, detected, *, dm: float | None = 0.005, ddepth: flo
 
     Notes
     -----
-    The number of cells is bounded by the number of occupied grid cells
-    (times two with ``split_outcomes``), whatever N, so the cost of a
-    likelihood call stops growing with N once N exceeds the grid.  Cells of
-    members with identical covariates reproduce the unbinned likelihood
-    exactly (up to rounding of the mean); otherwise the difference is second
-    order in the steps: about ``-1/2 sum_i g(1-g) var(z)`` per cell, with
-    ``var(z) = dm^2 / (12 w^2)`` for the magnitude step.
+    The number of cells is bounded by the number of occupied grid cells,
+    whatever N, so the cost of a likelihood call stops growing with N once N
+    exceeds the grid.  Every cell holds its detected and missed members at
+    the same (mean) covariates: cells of members with identical covariates
+    reproduce the unbinned likelihood exactly (up to rounding of the mean);
+    otherwise the binning loses the outcomes' correlation with position
+    inside a cell, an error second order in the steps (about
+    ``g(1-g) dm^2 / (12 w^2)`` per member for the magnitude step).  Cells
+    split by outcome (each outcome at its own members' mean) were tried and
+    dropped: they hand the fit an outcome-dependent covariate, and a depth
+    slope steep enough to separate the two means at a narrow width won the
+    likelihood where the depth barely varies within a cell (``beta_depth``
+    8-22 instead of 1 on white noise at 300k injections).
     """
     det = _check_outcomes(cov, detected)
     digits: list[np.ndarray] = []
@@ -482,8 +482,6 @@ def compress(cov: Covariates, detected, *, dm: float | None = 0.005, ddepth: flo
     if dsize is not None:
         digits.append(_bin_index(cov.size, dsize))
         binned.append("size")
-    if split_outcomes:
-        digits.append(det.astype(np.int64))
 
     radices = [int(d.max()) + 1 for d in digits]
     if math.prod(radices) < 2 ** 62:
@@ -504,7 +502,7 @@ def compress(cov: Covariates, detected, *, dm: float | None = 0.005, ddepth: flo
     cells = Covariates(mean(cov.m), mean(cov.depth), mean(cov.u), mean(cov.v), mean(cov.size))
     out_meta = dict(meta or {})
     out_meta.update({"N": len(cov), "ncells": g, "compressed": True, "binned": tuple(binned),
-                     "split_outcomes": bool(split_outcomes), "along_depth": bool(along_depth), "dm_max": dm_max,
+                     "along_depth": bool(along_depth), "dm_max": dm_max,
                      **steps})
     return BinomialData(cov=cells, n=n, k=np.round(k).astype(np.int64), index=index, meta=out_meta)
 
@@ -578,6 +576,14 @@ def covariate_warnings(spec, data: BinomialData) -> list[str]:
     return out
 
 
+#: Magnitude step of the cells in the transition (mag), up to :data:`DM_REFERENCE_N` injections.
+DM_TRANSITION = 0.015
+#: Depth step of the cells (mag), up to :data:`DM_REFERENCE_N` injections.
+DDEPTH = 0.1
+#: Beyond this many injections both steps shrink as N^(-1/4) (a binning shift of a few hundredths of a sd).
+DM_REFERENCE_N = 200_000
+
+
 def compress_for(specs, cov: Covariates, detected, **kwargs) -> BinomialData:
     """:func:`compress` resolving only the covariates that the model(s) use.
 
@@ -587,7 +593,7 @@ def compress_for(specs, cov: Covariates, detected, **kwargs) -> BinomialData:
         Model(s) that will be fitted to the result (a selection spec counts
         as all its candidates).
     cov, detected, kwargs
-        As for :func:`compress` (grid steps, ``meta``, ``split_outcomes``).
+        As for :func:`compress` (grid steps, ``meta``).
     """
     if isinstance(specs, (ModelSpec, str, os.PathLike)):
         specs = [specs]
@@ -596,18 +602,19 @@ def compress_for(specs, cov: Covariates, detected, **kwargs) -> BinomialData:
         s = load_spec(s)
         for child in (resolve_candidates(s) if s.is_selection else [s]):
             need.update(covariates_needed(child))
-    # Steps 0.02 mag in m - depth (the grid is laid along the direction in which m50 moves with the
-    # depth) and 0.1 mag in depth: with detected and undetected members in separate cells (each at
-    # its members' mean covariates) the binning error is second order, ~ (dm^2 + (beta - 1)^2
+    # Steps 0.015 mag in m - depth (the grid is laid along the direction in which m50 moves with the
+    # depth) and 0.1 mag in depth; the binning error is second order, ~ (dm^2 + (beta - 1)^2
     # ddepth^2) / (12 w^2) of the curvature per injection, and the number of cells -- the cost of
     # every likelihood call -- stays at a few thousand whatever N (the MAP shift against the
-    # unbinned likelihood is measured in tests/test_likelihood.py).
-    # On the plateau and the floor the magnitude step grows to 0.1 mag (see compress's dm_max): the
-    # error per member stays at most the transition's, and those ranges take a few cells instead of
-    # hundreds (the demo tile's point outcomes: 2169 cells at a uniform 0.02 mag, 768 with the grown step;
-    # its buldisk m50 moved by 3e-6 mag).
-    steps = {"ddepth": ("depth", 0.1), "nuv": ("uv", 16), "dsize": ("size", 0.01)}
-    kwargs.setdefault("dm", 0.02)
+    # unbinned likelihood is measured in the tests).  On the plateau and the floor the magnitude step
+    # grows to 0.1 mag (see compress's dm_max): the error per member stays at most the transition's.
+    steps = {"ddepth": ("depth", DDEPTH), "nuv": ("uv", 16), "dsize": ("size", 0.01)}
+    # the MAP shift from the binning grows as step^2 sqrt(N): past DM_REFERENCE_N injections both steps
+    # shrink as N^(-1/4), holding it at its value there (at most ~0.04 posterior sd, tests/test_likelihood.py)
+    shrink = min(1.0, (DM_REFERENCE_N / max(len(cov), 1)) ** 0.25)
+    kwargs.setdefault("dm", DM_TRANSITION * shrink)
+    if "depth" in need:
+        kwargs.setdefault("ddepth", DDEPTH * shrink)
     kwargs.setdefault("dm_max", 0.1)
     kwargs.setdefault("along_depth", True)
     for key, (group, default) in steps.items():
