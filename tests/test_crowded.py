@@ -1,7 +1,7 @@
 """A crowded field through the pipeline: the source-free image that would replace most of it.
 
 The fields are Gaussian stars (FWHM 3 px) on a flat sky of 100 with noise 10, dN/dm ~ 10^(0.3 m)
-(:func:`test_sourcefree.crowded_field`):
+(:func:`conftest.crowded_field`):
 
 * 1250 stars of 14-22 mag on 256^2 pixels, the density of the issue's 20,000 stars on 1024^2: their
   grown segments cover 99.98% of the pixels, and the run must be refused before anything is written,
@@ -15,8 +15,7 @@ import numpy as np
 import pytest
 from astropy.io import fits
 
-from conftest import tan_header, write_fits_file
-from test_sourcefree import crowded_field
+from conftest import crowded_field, tan_header, write_fits_file
 
 from comest_bayes.cli import main
 

@@ -16,7 +16,7 @@ from comest_bayes.inject.psfmodel import make_psf
 from comest_bayes.inject.profiles import sersic_index_grid
 
 from conftest import tan_header
-from test_sources import synthetic_catalog
+from observed_catalog import synthetic_catalog
 
 ZP = 30.0
 SCALE = 0.2

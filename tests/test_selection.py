@@ -1,6 +1,6 @@
 """Tests of comest_bayes.bayes.selection: grouped PSIS-LOO and model selection.
 
-The toy model of ``test_inference`` (a JAX model following the
+The toy model of ``tests/toy_inference.py`` (a JAX model following the
 CompletenessModel contract) is reused; the last tests use the real
 ``comest_bayes.bayes.model.CompletenessModel``.  Every random draw has a fixed seed.
 """
@@ -16,7 +16,7 @@ import pytest
 
 from comest_bayes.bayes.inference import fit_map, laplace
 from comest_bayes.bayes.selection import LooResult, LooWarning, compare_loo, loo_grouped, select_model
-from test_inference import ToyModel, compress_toy, simulate
+from toy_inference import ToyModel, compress_toy, simulate
 
 
 def _arviz():
@@ -179,7 +179,7 @@ def test_select_model_with_completeness_model(beta_depth, expected):
     # 0.04 mag x 0.1 mag grid.  With beta_depth = 1 m50 moves by +-0.3 mag against w = 0.2 (~150 nats in
     # favour of the depth model); with beta_depth = 0 the slope is worth ~1 nat at most, inside the 4-nat margin.
     from comest_bayes.bayes.outcomes import compress_for
-    from test_inference import simulate_real
+    from toy_inference import simulate_real
 
     cov, det = simulate_real(5000, seed=17, beta_depth=beta_depth)
     candidates = ["logistic", "logistic_depth"]
