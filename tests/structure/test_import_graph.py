@@ -17,6 +17,7 @@ from pathlib import Path
 import pytest
 
 import comest_bayes
+from conftest import REPO_ROOT
 
 PACKAGE_DIR = Path(comest_bayes.__file__).resolve().parent
 
@@ -191,9 +192,8 @@ def test_float64_is_switched_on_in_one_place_only():
     # JAX's precision is process-wide: one module (jaxnum) sets it, the numerics import JAX through it, and the
     # front door does not import it.
     import ast
-    from pathlib import Path
 
-    root = Path(__file__).resolve().parents[1] / "comest_bayes"
+    root = REPO_ROOT / "comest_bayes"
     setters = []
     for path in sorted(root.rglob("*.py")):
         for node in ast.walk(ast.parse(path.read_text())):

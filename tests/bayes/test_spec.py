@@ -8,6 +8,7 @@ import pytest
 
 from comest_bayes.errors import ConfigError
 from comest_bayes.bayes.spec import (DEFAULT_PRIORS, ModelSpec, list_specs, load_spec, resolve_candidates, spec_from_mapping, with_priors)
+from conftest import REPO_ROOT
 
 SHIPPED = ["auto", "auto_smooth", "logistic", "logistic_depth", "logistic_depth_size", "logistic_depth_smooth",
            "logistic_smooth", "pritchet", "probit", "probit_depth", "purity", "richards_depth", "spline_depth",
@@ -26,10 +27,9 @@ def test_list_specs_finds_every_shipped_file():
 def test_the_wheel_maps_models_into_the_package():
     """models/ (top level, as the user asked) is installed as comest_bayes.models with its files."""
     import sys
-    from pathlib import Path
 
     tomllib = pytest.importorskip("tomllib") if sys.version_info >= (3, 11) else pytest.importorskip("tomli")
-    root = Path(__file__).resolve().parents[1]
+    root = REPO_ROOT
     setup = tomllib.loads((root / "pyproject.toml").read_text())["tool"]["setuptools"]
     assert "comest_bayes.models" in setup["packages"]
     assert setup["package-dir"]["comest_bayes.models"] == "models"
@@ -41,10 +41,9 @@ def test_the_wheel_lists_every_subpackage_of_the_library():
     """A subpackage missing from [tool.setuptools] packages is left out of a wheel install (the report's
     ``comest_bayes.report.plots`` once was), while tests run from the checkout still import it."""
     import sys
-    from pathlib import Path
 
     tomllib = pytest.importorskip("tomllib") if sys.version_info >= (3, 11) else pytest.importorskip("tomli")
-    root = Path(__file__).resolve().parents[1]
+    root = REPO_ROOT
     listed = set(tomllib.loads((root / "pyproject.toml").read_text())["tool"]["setuptools"]["packages"])
     on_disk = {".".join(p.parent.relative_to(root).parts) for p in (root / "comest_bayes").rglob("__init__.py")}
     assert on_disk, "no package found under comest_bayes/"

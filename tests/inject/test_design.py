@@ -8,6 +8,7 @@ import pytest
 from comest_bayes.pipeline.adaptive import AdaptiveSettings, PosteriorView, run_sequential
 from comest_bayes.inject.design import (MagnitudeDesign, curves_at, design_from_draws, uniform_design, variance_reduction)
 from comest_bayes.errors import InputError
+from conftest import REPO_ROOT
 
 
 def logistic_draws(grid, m50=24.0, sd_m50=0.05, w=0.2, n=2000, seed=0):
@@ -278,9 +279,8 @@ def test_f_target_magnitudes_outside_the_range_are_refused_before_any_injection(
 def _bench_adaptive():
     """benchmarks/bench_adaptive.py as a module (the benchmarks folder is no package)."""
     import importlib.util
-    from pathlib import Path
 
-    path = Path(__file__).resolve().parents[1] / "benchmarks" / "bench_adaptive.py"
+    path = REPO_ROOT / "benchmarks" / "bench_adaptive.py"
     spec = importlib.util.spec_from_file_location("bench_adaptive_for_tests", path)
     mod = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(mod)

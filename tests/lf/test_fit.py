@@ -16,6 +16,7 @@ from comest_bayes.lf.fit import run_lf
 from comest_bayes.bayes.spec import load_spec
 from comest_bayes.bayes.posterior import CompletenessPosterior
 from comest_bayes.recover.transfer import PhotometricTransfer, measure_transfer
+from conftest import REPO_ROOT
 
 LN10 = math.log(10.0)
 
@@ -355,9 +356,8 @@ def _readme_lf_command():
     """The ``comest-bayes lf ...`` example of the README's luminosity-function section, as an argument list."""
     import re
     import shlex
-    from pathlib import Path
 
-    text = (Path(__file__).resolve().parents[1] / "README.md").read_text()
+    text = (REPO_ROOT / "README.md").read_text()
     section = text.split("## Luminosity function", 1)[1].split("\n## ", 1)[0]
     found = re.findall(r"`(comest-bayes lf [^`]+)`", section)
     assert found, "the README's luminosity-function section has no `comest-bayes lf ...` example"
