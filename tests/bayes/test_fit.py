@@ -9,7 +9,6 @@ from astropy.table import Table
 
 from comest_bayes.config import load_config
 from comest_bayes.bayes.fit import fit_kind, purity_outcomes
-from comest_bayes.bayes.posterior import CompletenessPosterior
 
 SHAPE = (400, 600)
 SPLIT = 330  # x where the shallow part starts
@@ -104,64 +103,12 @@ def test_degenerate_outcomes_give_a_finite_posterior_and_a_warning(case):
     assert all(0.0 <= v <= 1.0 for v in curve["median"])
 
 
-def test_posterior_saves_and_reloads(tmp_path):
-    table, noise_map = _outcomes(4000, seed=5)
-    post, _ = _fit(table, noise_map, "logistic_depth")
-    path = post.save(tmp_path / "p.npz")
-    again = CompletenessPosterior.load(path)
-    np.testing.assert_array_equal(again.samples, post.samples)
-    np.testing.assert_allclose(again.completeness([23.0, 24.0], 50.0, 50.0), post.completeness([23.0, 24.0], 50.0, 50.0))
-    med, sd, header = again.m50_map(100)
-    assert med.shape == (4, 6) and np.all(sd >= 0)
-    # the shallow part of the m50 map (x >= 330: map columns 4, 5) is brighter by the depth slope x 0.5 mag
-    assert med[:, :3].mean() - med[:, 4:].mean() == pytest.approx(0.5, abs=0.1)
-
-
 def test_purity_outcomes_stack_matched_and_false_detections():
     matched = Table({"det_xwin": [1.0, 2.0], "det_ywin": [3.0, 4.0], "det_mag_auto": [20.0, 21.0]})
     false = Table({"xwin": [5.0], "ywin": [6.0], "mag_auto": [25.0]})
     t = purity_outcomes(matched, false)
     assert list(t["real"]) == [True, True, False]
     assert list(t["mag"]) == [20.0, 21.0, 25.0] and list(t["x"]) == [1.0, 2.0, 5.0]
-
-
-def test_sky_coordinate_query_equals_the_pixel_query():
-    from astropy.wcs import WCS
-
-    w = WCS(naxis=2)
-    w.wcs.ctype = ["RA---TAN", "DEC--TAN"]
-    w.wcs.crval = [150.0, 2.0]
-    w.wcs.crpix = [300.0, 200.0]
-    w.wcs.cd = np.array([[-0.2, 0.05], [0.05, 0.2]]) / 3600.0
-    table, noise_map = _outcomes(3000, seed=6)
-    config = load_config(overrides=["fit.model=logistic_depth", "fit.min_ess=100"], seed=3)
-    post, _ = fit_kind(table, kind="point", quantity="completeness", requested="logistic_depth", config=config,
-                       image_shape=SHAPE, noise=noise_map, mask=np.zeros(SHAPE, bool),
-                       wcs_header=w.to_header().tostring(), mag_range=(21.0, 26.5),
-                       mag_centers=np.arange(21.1, 26.5, 0.2))
-    (ra, dec), = [w.all_pix2world([[500.0, 100.0]], 0)[0]]
-    np.testing.assert_allclose(post.completeness(24.0, ra=ra, dec=dec), post.completeness(24.0, 500.0, 100.0),
-                               rtol=1e-6)
-    # and a sky position in the deep part differs from one in the shallow part
-    (ra2, dec2), = [w.all_pix2world([[100.0, 100.0]], 0)[0]]
-    assert post.completeness(24.0, ra=ra2, dec=dec2).mean() > post.completeness(24.0, ra=ra, dec=dec).mean() + 0.2
-
-
-def test_two_pass_crossing_magnitudes_equal_the_full_fine_grid():
-    # magnitudes_at locates the crossings on a 0.1 mag grid, then refines on a 0.01 mag grid over the window
-    # they span only; the result must equal the crossing on the fine grid over the whole range (the two fine
-    # grids are offset from each other, so linear interpolation differs by < ~1e-4 mag near m80/m90)
-    from comest_bayes.bayes.posterior import crossing_magnitudes
-
-    table, noise_map = _outcomes(3000, seed=9)
-    post, _ = _fit(table, noise_map, "logistic_depth", min_ess=100)
-    got = post.magnitudes_at((0.5, 0.8, 0.9), nsamples=200)
-    grid = np.arange(21.0 - 2.0, 26.5 + 2.0 + 0.01, 0.01)
-    f = post.average_curve(grid, nsamples=200)
-    for level, values in got.items():
-        want = crossing_magnitudes(grid, f, level)
-        np.testing.assert_allclose(values, want, atol=2e-3)
-        assert np.all(np.isfinite(values))
 
 
 def test_all_injections_in_one_bin_warn_that_the_shape_is_unconstrained():
