@@ -416,6 +416,22 @@ def test_star_counts_slope_and_density():
     assert np.all(np.isnan(stars["hlr_arcsec"]))
 
 
+def test_demo_star_counts_follow_the_requested_power_law():
+    t = demo_truth_catalog(seed=5, size=3000, galaxy_density=0.0, n_saturated_stars=0,
+                           star_counts=(2.0e4, 0.3, 23.0))
+    assert set(t["kind"]) == {"star"}
+    area = (3000 * 0.26 / 3600) ** 2
+    m = np.asarray(t["mag"])
+    b = 0.3 * math.log(10.0)
+    for lo, hi in ((18.0, 21.0), (21.0, 24.0)):
+        expected = area * 2.0e4 * (math.exp(b * (hi - 23)) - math.exp(b * (lo - 23))) / b
+        # Poisson counts: within 4 sigma (fails with probability ~6e-5 for the right density)
+        assert abs(np.sum((m >= lo) & (m < hi)) - expected) < 4 * math.sqrt(expected)
+    # the default populations are untouched by the new parameters
+    default = demo_truth_catalog(seed=5, size=300)
+    assert "galaxy" in set(default["kind"])
+
+
 def test_galaxy_sizes_follow_the_size_magnitude_relation():
     cat = demo_truth_catalog(9, size=12000, star_density=0.0)
     gal = cat[cat["kind"] == "galaxy"]
