@@ -15,13 +15,12 @@ from scipy.spatial import cKDTree
 
 from comest_bayes.detect.catalog import DETECTION_COLUMNS, FLAG_EDGE, FLAG_MASKED, FLAG_SATURATED
 from comest_bayes.config import DetectionConfig
-from comest_bayes.detect.sep_backend import DEFAULT_CONV, detect, detect_array, filter_kernel, noise_map
+from comest_bayes.detect.sep_backend import detect, detect_array, filter_kernel
 from comest_bayes.errors import ConfigError, DetectionOverflowError, InputError
 from comest_bayes.io.image import load_image
 from conftest import FWHM_PER_SIGMA, render_point_sources, write_fits_file
 
 ZP = 25.0
-SEXTRACTOR_SHARE = "/usr/share/source-extractor"
 
 
 @pytest.fixture(autouse=True)
@@ -339,18 +338,6 @@ def test_weight_mode_without_a_weight_map():
         detect_array(data, zeropoint=ZP, config=DetectionConfig(noise="weight"))
 
 
-def test_noise_map_fills_masked_pixels_with_the_median():
-    rms = np.arange(16, dtype=np.float32).reshape(4, 4) + 1
-    mask = np.zeros((4, 4), bool)
-    mask[0, 0] = True
-    weight = np.full((4, 4), np.inf, np.float32)
-    weight[~mask] = 2.0
-    out, mode = noise_map("weight", rms, 3.0, weight, mask)
-    assert mode == "weight" and np.all(np.isfinite(out))
-    scale = np.median(rms[~mask]) / 2.0
-    np.testing.assert_allclose(out, 2.0 * scale)
-
-
 # --------------------------------------------------------------------------- masks and flags
 
 
@@ -397,41 +384,6 @@ def test_saturation_and_edge_flags():
     assert cat["flags"][i_edge] & FLAG_EDGE and not cat["flags"][i_ok] & FLAG_EDGE
 
 
-# --------------------------------------------------------------------------- filter kernels
-
-
-def test_default_kernel_is_sextractors_default_conv():
-    kernel = filter_kernel("default")
-    assert kernel.shape == (3, 3) and kernel.dtype == np.float32
-    assert kernel.sum() == pytest.approx(1.0, abs=1e-7)
-    np.testing.assert_allclose(kernel, np.array([[1, 2, 1], [2, 4, 2], [1, 2, 1]]) / 16.0, rtol=1e-7)
-    np.testing.assert_allclose(kernel, DEFAULT_CONV / 16.0)
-
-
-def test_default_kernel_equals_the_installed_default_conv():
-    path = f"{SEXTRACTOR_SHARE}/default.conv"
-    try:
-        kernel = filter_kernel(path)
-    except ConfigError:
-        pytest.skip(f"{path} not installed (Debian package source-extractor)")
-    np.testing.assert_allclose(kernel, filter_kernel("default"), rtol=1e-7)
-
-
-@pytest.mark.parametrize("fwhm, n", [(2.0, 3), (3.0, 5), (3.0, 7), (4.5, 9)])
-def test_gauss_kernels(fwhm, n):
-    kernel = filter_kernel(f"gauss_{fwhm}_{n}x{n}")
-    assert kernel.shape == (n, n)
-    assert kernel.sum() == pytest.approx(1.0, abs=1e-6)
-    c = n // 2
-    np.testing.assert_allclose(kernel, kernel.T)  # circular
-    np.testing.assert_allclose(kernel, kernel[::-1, ::-1])
-    # Its FWHM: a Gaussian sampled at pixel centres has k(r)/k(0) = exp(-r^2 / 2 sigma^2).
-    sigma = np.sqrt(-1.0 / (2.0 * np.log(kernel[c, c + 1] / kernel[c, c])))
-    assert sigma * FWHM_PER_SIGMA == pytest.approx(fwhm, rel=1e-5)
-    # Separable: the corner holds the product of the two 1-D factors.
-    assert kernel[c + 1, c + 1] * kernel[c, c] == pytest.approx(kernel[c, c + 1] ** 2, rel=1e-5)
-
-
 def test_conv_file_is_parsed_and_normalised(tmp_path):
     path = tmp_path / "my.conv"
     path.write_text("CONV NORM\n# a 3x5 kernel, SExtractor format\n"
@@ -465,28 +417,6 @@ def test_object_aligned_with_the_y_axis_is_measured():
     assert abs(obj["theta"]) == pytest.approx(np.pi / 2, abs=1e-6) and abs(obj["theta"]) <= np.pi / 2
     assert obj["y"] == pytest.approx(c + 0.5, abs=1e-3) and obj["x"] == pytest.approx(c, abs=1e-3)
     assert np.isfinite(obj["flux_auto"]) and obj["flux_auto"] > 0
-
-
-@pytest.mark.parametrize("name, pattern", [
-    ("gauss_2.0_4x4", r"odd square size"),
-    ("gauss_2.0_5x7", r"odd square size"),
-    ("gaussian", r"neither 'default', 'none', 'gauss_<fwhm>_<n>x<n>' nor an existing"),
-    ("/nonexistent/file.conv", r"nor an existing SExtractor \.conv file"),
-])
-def test_bad_filter_names(name, pattern):
-    with pytest.raises(ConfigError, match=pattern):
-        filter_kernel(name)
-
-
-def test_bad_conv_files(tmp_path):
-    ragged = tmp_path / "ragged.conv"
-    ragged.write_text("CONV NORM\n1 2 1\n2 4\n")
-    with pytest.raises(ConfigError, match="rectangular kernel"):
-        filter_kernel(str(ragged))
-    zero = tmp_path / "zero.conv"
-    zero.write_text("CONV NORM\n-1 2 -1\n")
-    with pytest.raises(ConfigError, match="cannot be normalised"):
-        filter_kernel(str(zero))
 
 
 # --------------------------------------------------------------------------- buffer overflows
