@@ -10,7 +10,6 @@ from astropy.table import Table
 
 from comest_bayes.errors import OutputWriteError, RunDirectoryError
 from comest_bayes.io.rundir import RunDirectory, atomic_path, check_writable, file_checksum
-from comest_bayes.seeding import int_seed_for, rng_for, seed_sequence
 
 
 def test_new_run_writes_run_json_with_fingerprint_and_versions(tmp_path):
@@ -84,19 +83,6 @@ def test_file_checksum_is_sha256(tmp_path):
     p = tmp_path / "b"
     p.write_bytes(os.urandom(1000))
     assert file_checksum(p) == hashlib.sha256(p.read_bytes()).hexdigest()
-
-
-def test_seed_streams_depend_only_on_root_and_name():
-    a = rng_for(7, "inject", "point", 3).normal(size=5)
-    # drawing from other streams first must not change this one
-    rng_for(7, "inject", "point", 2).normal(size=100)
-    b = rng_for(7, "inject", "point", 3).normal(size=5)
-    np.testing.assert_array_equal(a, b)
-    assert not np.array_equal(a, rng_for(8, "inject", "point", 3).normal(size=5))
-    assert not np.array_equal(a, rng_for(7, "inject", "buldisk", 3).normal(size=5))
-    assert int_seed_for(7, "x") == int_seed_for(7, "x") > 0
-    with pytest.raises(ValueError, match="non-negative"):
-        seed_sequence(-1)
 
 
 # ---------------------------------------------------------------- leftovers, lock, writability, write errors
