@@ -1,6 +1,8 @@
-"""Reading a run's data for the report (comest_bayes.report.rundata)."""
+"""Reading a run's data for the report (comest_bayes.report.rundata): run directories made by hand, curves
+and depth lines from summary.json, clear errors, and the sampler chains of a posterior."""
 
 import numpy as np
+import pytest
 
 from comest_bayes.bayes.spec import load_spec
 from comest_bayes.report.plots.diagnostics import sampler_figure, trace_plot
@@ -37,3 +39,66 @@ def test_chain_samples_unflattens_step_major_draws():
     fig = sampler_figure("point completeness", {"names": names, "tau": [5, 6, 7, 8], "nsteps": 70,
                                                 "acceptance_mean": 0.3, "converged": True}, chain)
     assert "converged" in fig._suptitle.get_text() and len(fig.axes) == 3
+
+
+# --------------------------------------------------------------------------- a run directory made by hand
+
+def _write_run(path, summary=None, state=None):
+    import json
+
+    path.mkdir(parents=True, exist_ok=True)
+    state = state if state is not None else {
+        "fingerprint": {"config": {"seed": 5, "injection": {"nsims": 3}}},
+        "image": {"shape": [100, 200], "zeropoint": 30.0}}
+    (path / "run.json").write_text(json.dumps(state))
+    if summary is not None:
+        (path / "summary.json").write_text(json.dumps(summary))
+    return path
+
+
+SUMMARY = {
+    "depth": {"point_source_5sigma": 24.2, "aperture_5sigma": 23.9, "aperture_diameter_pix": 6.0},
+    "kinds": {"sersic": {"binned": {"mag_centers": [21.5, 22.5, 23.5], "completeness": [0.9, 0.4, None],
+                                    "completeness_lower": [0.8, 0.3, None], "completeness_upper": [0.95, 0.5, None],
+                                    "completeness_n": [10, 10, 0], "confidence": 0.6827, "interval": "wilson"}},
+              "point": {}},
+}
+
+
+def test_open_run_reads_the_records_and_the_run_configuration(tmp_path):
+    from comest_bayes.report.rundata import open_run
+
+    run = open_run(_write_run(tmp_path / "run", SUMMARY))
+    assert run.kinds == ["sersic", "point"]  # in the order of summary.json
+    assert run.image_facts == {"shape": [100, 200], "zeropoint": 30.0}  # from run.json: summary has none
+    assert run.config.seed == 5 and run.config.injection.nsims == 3
+    assert run.kind("buldisk") == {} and run.file("summary.json").is_file()
+    partial = open_run(_write_run(tmp_path / "partial"))
+    assert partial.summary is None and partial.kinds == []
+
+
+def test_binned_curves_and_depth_lines_from_summary_json(tmp_path):
+    from comest_bayes.report.rundata import binned_curve, depth_lines, open_run
+
+    run = open_run(_write_run(tmp_path / "run", SUMMARY))
+    curve = binned_curve(run, "sersic", "completeness")
+    np.testing.assert_array_equal(curve.centers, [21.5, 22.5, 23.5])
+    np.testing.assert_array_equal(curve.ratio[:2], [0.9, 0.4])
+    assert np.isnan(curve.ratio[2]) and list(curve.n) == [10, 10, 0] and curve.interval == "wilson"
+    assert binned_curve(run, "sersic", "purity") is None and binned_curve(run, "point", "completeness") is None
+    lines = depth_lines(run.summary)
+    assert [(d.mag, d.label) for d in lines] == [(24.2, "5σ point-source depth"), (23.9, "5σ depth, 6.0 px aperture")]
+    assert depth_lines(None) == [] and depth_lines({"depth": {"aperture_5sigma": 23.0}})[0].label == "5σ depth, aperture"
+
+
+@pytest.mark.parametrize("make, message", [
+    (lambda p: p / "missing", "is not a directory"),
+    (lambda p: p, "holds no run.json"),
+    (lambda p: _write_run(p, state=["no", "record"]), r"not a comest-bayes run record \(no fingerprint\)"),
+])
+def test_what_is_no_run_is_refused(tmp_path, make, message):
+    from comest_bayes.errors import RunDirectoryError
+    from comest_bayes.report.rundata import open_run
+
+    with pytest.raises(RunDirectoryError, match=message):
+        open_run(make(tmp_path))
