@@ -211,7 +211,9 @@ def test_point_sources_get_size_zero_without_nan():
         warnings.simplefilter("error")
         cov, _, meta = covariates_from_outcomes(t, image_shape=(100, 300))
     assert np.all(cov.size == 0) and "size" not in meta["available"]
-    with pytest.warns(UserWarning, match="size"):
+    # the warning must say what is wrong and what follows, not merely mention the size
+    with pytest.warns(UserWarning, match=r"uses the size \(no half-light radii\); that covariate is 0 for every "
+                                         r"injection, so its slope is constrained by its prior only"):
         CompletenessModel("logistic_depth_size", compress_for("logistic_depth_size", cov, _, meta=meta))
 
 

@@ -49,7 +49,7 @@ def test_spline_integrates_the_piecewise_linear_rate():
 def test_knots_layout():
     knots, k0 = spline_knots(K)
     assert knots[0] == SPLINE_T0 and knots[k0] == 0.0 and knots[1] - knots[0] == SPLINE_H and len(knots) == K + 1
-    with pytest.raises(ValueError):
+    with pytest.raises(ValueError, match="at least 7 free knots .* got 3"):
         spline_knots(3)
 
 

@@ -189,7 +189,7 @@ def test_missing_binary_raises_with_install_instructions(monkeypatch):
     assert "conda install -c conda-forge astromatic-source-extractor" in text
     assert "backend='sep'" in text
     # detect_sextractor fails the same way before doing anything
-    with pytest.raises(BackendUnavailableError):
+    with pytest.raises(BackendUnavailableError, match="apt-get install source-extractor"):
         sx.detect_sextractor(np.zeros((20, 20), np.float32), zeropoint=25.0)
 
 

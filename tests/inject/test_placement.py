@@ -53,7 +53,7 @@ def test_impossible_density_warns_and_places_as_many_as_possible():
 
 
 def test_grid_reduces_count_when_cells_would_be_too_small():
-    with pytest.warns(UserWarning):
+    with pytest.warns(UserWarning, match=r"only 25 of 500 injections fit with a minimum separation of 20\.00 pixels"):
         p = place_sources(500, (100, 100), np.random.default_rng(0), method="grid", min_sep_pix=20.0)
     assert p.n == 25  # 5 x 5 cells of 20 px
     assert nearest_neighbour_distances(p.x, p.y).min() >= 20.0 - 1e-9

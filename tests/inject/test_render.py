@@ -471,7 +471,7 @@ def test_batched_stamps_agree_with_the_per_source_galsim_path(rotation):
     np.testing.assert_array_equal(info["flag"], ref["flag"])
     assert info["flag"][2] == FLAG_OFF_IMAGE and info["flag"][0] == FLAG_OFF_IMAGE
     # Point sources use the same PSF transform and folding: identical to rounding. Galaxies differ by
-    # the bulge's table interpolation (<= 7.6e-6 of the flux in k space, see test_sources.py): measured
+    # the bulge's table interpolation (<= 7.6e-6 of the flux in k space, see inject/test_kspace.py): measured
     # 5e-7 of the peak; 1e-5 leaves room for other parameters without hiding a real error (a wrong
     # shear or fold gives > 1e-3).
     assert np.abs(fast - slow).max() < 1e-5 * slow.max()

@@ -62,7 +62,7 @@ def test_out_that_is_a_file_is_refused(tmp_path):
 
 def test_atomic_path_leaves_nothing_on_failure(tmp_path):
     target = tmp_path / "out.txt"
-    with pytest.raises(RuntimeError):
+    with pytest.raises(RuntimeError, match="crash mid-write"):  # the caller's own error, unchanged
         with atomic_path(target) as tmp:
             tmp.write_text("half")
             raise RuntimeError("crash mid-write")

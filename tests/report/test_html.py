@@ -345,7 +345,7 @@ def test_cli_report_on_a_non_run_gives_one_error_line(tmp_path, capsys, make):
     err = capsys.readouterr().err
     assert err.startswith("error:") and len(err.strip().splitlines()) == 1 and "Traceback" not in err
     assert "comest-bayes run" in err
-    with pytest.raises(RunDirectoryError):
+    with pytest.raises(RunDirectoryError, match="comest-bayes run"):  # --debug: the same error, raised
         main(["report", str(target), "--debug"])
 
 

@@ -467,5 +467,5 @@ def test_invalid_parameters_raise_input_error():
         make_demo_tile(0, size=128, saturation=100.0)
     with pytest.raises(InputError, match="gap_width"):
         make_demo_tile(0, size=128, gap_width=100)
-    with pytest.raises(ValueError):  # InputError is a ValueError
+    with pytest.raises(ValueError, match="depth_gradient=0.5 is invalid: use a sigma ratio >= 1"):  # an InputError
         demo_truth_catalog(0, size=128, depth_gradient=0.5)

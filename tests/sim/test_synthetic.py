@@ -39,7 +39,7 @@ def test_scene_depth_mask_and_reference(scene):
     assert 0.45 < rows[0] - rows[-1] < 0.75 or 0.45 < rows[-1] - rows[0] < 0.75
     assert 0.5 < d.max() - d.min() < 1.0
     # read-only, frozen
-    with pytest.raises(ValueError):
+    with pytest.raises(ValueError, match="read-only"):
         scene.noise[0, 0] = 1.0
 
 
@@ -50,15 +50,15 @@ def test_scene_without_gap_or_gradient():
 
 
 def test_scene_bad_arguments():
-    with pytest.raises(InputError):
+    with pytest.raises(InputError, match=r"shape must be at least \(16, 16\), got \(8, 8\)"):
         S.make_scene((8, 8), seed=1)
-    with pytest.raises(InputError):
+    with pytest.raises(InputError, match="seed must be a non-negative integer, got -1"):
         S.make_scene(seed=-1)
-    with pytest.raises(InputError):
+    with pytest.raises(InputError, match="gradient = -0.1 must be a finite non-negative"):
         S.make_scene(gradient=-0.1, seed=1)
-    with pytest.raises(InputError):
+    with pytest.raises(InputError, match="the mask covers the whole scene"):
         S.Scene(shape=(4, 4), noise=np.ones((4, 4)), mask=np.ones((4, 4), bool))
-    with pytest.raises(InputError):
+    with pytest.raises(InputError, match="noise must be finite and positive at every pixel"):
         S.Scene(shape=(4, 4), noise=np.zeros((4, 4)), mask=np.zeros((4, 4), bool))
 
 
@@ -72,7 +72,7 @@ def test_at_least_seven_named_truths_with_one_line_descriptions():
         assert truth.name == name
         assert truth.description and "\n" not in truth.description
         assert S.get_truth(name) is truth
-    with pytest.raises(InputError):
+    with pytest.raises(InputError, match="unknown truth 'no_such_truth'; use a Truth instance or one of"):
         S.get_truth("no_such_truth")
 
 
@@ -200,15 +200,15 @@ def test_same_seed_same_table(small_scene):
 
 
 def test_draw_outcomes_bad_arguments(small_scene):
-    with pytest.raises(InputError):
+    with pytest.raises(InputError, match="n = 0 must be a positive integer"):
         S.draw_outcomes("logistic", small_scene, 0, seed=1)
-    with pytest.raises(InputError):
+    with pytest.raises(InputError, match=r"mag_range = \(25.0, 24.0\) must be finite with bright < faint"):
         S.draw_outcomes("logistic", small_scene, 10, seed=1, mag_range=(25.0, 24.0))
-    with pytest.raises(InputError):
+    with pytest.raises(InputError, match="seed must be a non-negative integer, got None"):
         S.draw_outcomes("logistic", small_scene, 10, seed=None)
-    with pytest.raises(InputError):
+    with pytest.raises(InputError, match="scene must be a Scene"):
         S.draw_outcomes("logistic", np.ones((5, 5)), 10, seed=1)
-    with pytest.raises(InputError):
+    with pytest.raises(InputError, match="unknown truth 'nope'"):
         S.draw_outcomes("nope", small_scene, 10, seed=1)
 
 
@@ -239,9 +239,9 @@ def test_binned_estimate_recovers_control_m50(scene):
 
 def test_binned_estimate_bad_arguments(small_scene):
     t = S.draw_outcomes("logistic", small_scene, 100, seed=1)
-    with pytest.raises(InputError):
+    with pytest.raises(InputError, match=r"mag_range = \(24.0, 23.0\) must be finite with bright < faint"):
         S.binned_estimate(t, mag_range=(24.0, 23.0))
-    with pytest.raises(InputError):
+    with pytest.raises(InputError, match="mag_bin = 0.0 must be a positive bin width"):
         S.binned_estimate(t, mag_range=(22.0, 26.0), mag_bin=0.0)
-    with pytest.raises(InputError):
+    with pytest.raises(InputError, match="needs 'mag' and 'detected' columns"):
         S.binned_estimate({"mag": [24.0]}, mag_range=(22.0, 26.0))
