@@ -17,9 +17,9 @@ synthetic_fits
     zero point keyword.
 
 The plain helpers (``render_point_sources``, ``make_synthetic_sky``,
-``tan_header``, ``write_fits_file``, ``matched_snr``, ``FWHM_PER_SIGMA``) are
-also imported by the test modules (``from conftest import ...``; pytest puts
-``tests/`` on ``sys.path``).  Everything is deterministic: every random draw
+``tan_header``, ``write_fits_file``, ``matched_snr``, ``crowded_field``, ``FWHM_PER_SIGMA``) are
+also imported by the test modules (``from conftest import ...``; ``pythonpath`` in
+pyproject.toml puts ``tests/`` on ``sys.path`` for the test files in its subfolders).  Everything is deterministic: every random draw
 comes from a seed argument.
 """
 
@@ -198,6 +198,22 @@ def make_synthetic_sky(*, shape=(256, 256), spacing: float = 32.0, border: float
 
 
 # --------------------------------------------------------------------------- FITS
+
+
+def crowded_field(n: int = 256, nstars: int = 600, mags=(16.0, 24.0), seed: int = 1, zp: float = 30.0):
+    """Gaussian stars (FWHM 3 px) at random positions, dN/dm ~ 10^(0.3 m), on a flat sky 100 with noise 10
+    (magnitudes with zero point ``zp``).
+
+    600 stars of 16-24 mag on 256^2 (half the density of 20,000 stars on 1024^2) leave a seventh of
+    the pixels outside the grown segments, and no 64-px background mesh with half its pixels free.
+    """
+    rng = np.random.default_rng(seed)
+    a = 0.3
+    lo, hi = 10 ** (a * mags[0]), 10 ** (a * mags[1])
+    m = np.log10(lo + rng.uniform(size=nstars) * (hi - lo)) / a
+    x, y = rng.uniform(0, n, nstars), rng.uniform(0, n, nstars)
+    model = render_point_sources((n, n), x, y, 10 ** (-0.4 * (m - zp)), fwhm=3.0)
+    return (model + 100.0 + rng.normal(0.0, 10.0, (n, n))).astype(np.float32)
 
 
 def tan_header(shape, pixel_scale: float = 0.2, rotation_deg: float = 0.0, crval=(150.1, 2.2),

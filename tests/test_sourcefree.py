@@ -23,7 +23,7 @@ import numpy as np
 import pytest
 from scipy import ndimage
 
-from conftest import render_point_sources
+from conftest import crowded_field
 
 from comest_bayes.config import SourceFreeConfig
 from comest_bayes.detect.sep_backend import detect_array
@@ -327,21 +327,6 @@ def test_meta_is_plain_json_and_validation(clean):
 # ------------------------------------------------------------------------------------------------
 # crowded fields: how much is replaced, and whether the fill still looks like the detection's sky
 # ------------------------------------------------------------------------------------------------
-
-
-def crowded_field(n: int = 256, nstars: int = 600, mags=(16.0, 24.0), seed: int = 1):
-    """Gaussian stars (FWHM 3 px) at random positions, dN/dm ~ 10^(0.3 m), on a flat sky 100 with noise 10.
-
-    600 stars of 16-24 mag on 256^2 (half the density of 20,000 stars on 1024^2) leave a seventh of
-    the pixels outside the grown segments, and no 64-px background mesh with half its pixels free.
-    """
-    rng = np.random.default_rng(seed)
-    a = 0.3
-    lo, hi = 10 ** (a * mags[0]), 10 ** (a * mags[1])
-    m = np.log10(lo + rng.uniform(size=nstars) * (hi - lo)) / a
-    x, y = rng.uniform(0, n, nstars), rng.uniform(0, n, nstars)
-    model = render_point_sources((n, n), x, y, 10 ** (-0.4 * (m - ZP)), fwhm=3.0)
-    return (model + 100.0 + rng.normal(0.0, 10.0, (n, n))).astype(np.float32)
 
 
 def test_too_few_sky_meshes_keep_the_detection_background():

@@ -610,7 +610,7 @@ def compress_for(specs, cov: Covariates, detected, **kwargs) -> BinomialData:
     # grows to 0.1 mag (see compress's dm_max): the error per member stays at most the transition's.
     steps = {"ddepth": ("depth", DDEPTH), "nuv": ("uv", 16), "dsize": ("size", 0.01)}
     # the MAP shift from the binning grows as step^2 sqrt(N): past DM_REFERENCE_N injections both steps
-    # shrink as N^(-1/4), holding it at its value there (at most ~0.04 posterior sd, tests/test_likelihood.py)
+    # shrink as N^(-1/4), holding it at its value there (at most ~0.06 posterior sd, tests/bayes/test_outcomes.py)
     shrink = min(1.0, (DM_REFERENCE_N / max(len(cov), 1)) ** 0.25)
     kwargs.setdefault("dm", DM_TRANSITION * shrink)
     if "depth" in need:

@@ -1,0 +1,274 @@
+"""The JAX density of the completeness model (comest_bayes.bayes.model): known answers on a tiny data set, m50
+and its covariates, gradients and Hessians, priors, MAP recovery, degenerate data, compilation and batches.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+from scipy import integrate, optimize, special, stats
+
+from comest_bayes.errors import InputError
+from comest_bayes.bayes.model import TRACE_COUNT, CompletenessModel
+from comest_bayes.bayes.outcomes import Covariates, compress, compress_for, uncompressed
+from comest_bayes.bayes.spec import ModelSpec
+
+
+LINKS = ("logistic", "probit", "pritchet")
+
+
+# --------------------------------------------------------------------------- helpers
+
+def synthetic(n, seed, *, m50=24.0, w=0.2, A=0.95, floor=0.01, beta_depth=1.0, c10=0.0, mrange=(20.0, 27.0)):
+    """Outcomes drawn from the logistic model with known parameters (depth follows u, plus scatter)."""
+    rng = np.random.default_rng(seed)
+    m = rng.uniform(*mrange, n)
+    u = rng.uniform(-1, 1, n)
+    v = rng.uniform(-1, 1, n)
+    depth = 0.3 * u - 0.2 * v ** 2 + rng.normal(0.0, 0.05, n)
+    cov = Covariates(m, depth, u, v, np.zeros(n))
+    field = m50 + beta_depth * depth + c10 * u
+    f = floor + (A - floor) * special.expit((field - m) / w)
+    return cov, rng.uniform(size=n) < f
+
+
+def numpy_logistic_loglik(m, y, m50, w, A, floor):
+    f = floor + (A - floor) / (1.0 + np.exp(-(m50 - m) / w))
+    return float(np.sum(np.where(y, np.log(f), np.log1p(-f))))
+
+
+# --------------------------------------------------------------------------- model: known answers
+
+@pytest.fixture(scope="module")
+def tiny():
+    m = np.array([21.0, 23.5, 24.0, 24.2, 25.0, 26.5])
+    y = np.array([True, True, False, True, False, False])
+    depth = np.array([0.1, -0.2, 0.0, 0.3, -0.1, 0.2])
+    u = np.array([-1.0, -0.5, 0.0, 0.25, 0.5, 1.0])
+    v = np.array([0.5, -1.0, 0.75, 0.0, -0.25, 1.0])
+    return Covariates(m, depth, u, v, np.zeros(6)), y
+
+
+def test_tiny_dataset_matches_hand_computation(tiny):
+    cov, y = tiny
+    model = CompletenessModel("logistic_depth", uncompressed(cov, y))
+    assert model.names == ["m50_0", "log_w", "logit_A", "logit_floor", "beta_depth"]
+    p = dict(m50_0=24.1, w=0.3, A=0.9, floor=0.05, beta_depth=0.7)
+    theta = model.inverse_transform(p)
+    ll = numpy_logistic_loglik(cov.m, y, p["m50_0"] + p["beta_depth"] * cov.depth, p["w"], p["A"], p["floor"])
+    assert model.log_likelihood(theta) == pytest.approx(ll, rel=1e-13)
+    # the prior in theta space: densities of the documented priors times the Jacobians of the logits
+    r = p["floor"] / p["A"]
+    lp = (stats.norm(25, 5).logpdf(24.1) + stats.norm(math.log(0.2), 1).logpdf(math.log(0.3))
+          + stats.beta(20, 1).logpdf(0.9) + math.log(0.9 * 0.1)
+          + stats.beta(1, 50).logpdf(r) + math.log(r * (1 - r))
+          + stats.norm(1, 1).logpdf(0.7))
+    assert model.log_prior(theta) == pytest.approx(lp, rel=1e-12)
+    assert model.log_prob(theta) == pytest.approx(lp + ll, rel=1e-12)
+    back = model.transform(theta)
+    for key, value in p.items():
+        assert back[key] == pytest.approx(value, rel=1e-12)
+
+
+@pytest.mark.parametrize("link", LINKS)
+def test_prob_at_m50_is_halfway_between_floor_and_plateau(link):
+    cov, y = synthetic(50, 1)
+    model = CompletenessModel(ModelSpec(name=link, link=link, spatial="depth"), uncompressed(cov, y))
+    p = dict(m50_0=23.0, w=0.25, A=0.93, floor=0.04, beta_depth=0.8)
+    theta = model.inverse_transform(p)
+    d = np.array([-0.4, 0.0, 0.5])
+    at = Covariates.make(p["m50_0"] + p["beta_depth"] * d, depth=d)
+    np.testing.assert_allclose(model.prob(theta, at), 0.04 + (0.93 - 0.04) / 2, rtol=1e-12)
+    # far bright -> plateau, far faint -> floor (|z| = 1e5: even the Pritchet tail 1/(4 z^2) is negligible)
+    ends = Covariates.make(np.array([23.0 - 2.5e4, 23.0 + 2.5e4]))
+    np.testing.assert_allclose(model.prob(theta, ends), [0.93, 0.04], rtol=1e-9)
+
+
+def test_depth_slope_shifts_the_m50_field():
+    cov, y = synthetic(50, 2)
+    model = CompletenessModel("logistic_depth_smooth", uncompressed(cov, y))
+    theta = model.inverse_transform(dict(m50_0=24.0, w=0.2, beta_depth=1.3, c_10=0.2, c_02=-0.1))
+    d = np.linspace(-0.5, 0.5, 11)
+    u = np.linspace(-1, 1, 11)
+    v = np.linspace(1, -1, 11)
+    with_d = model.m50(theta, Covariates.make(20.0, depth=d, u=u, v=v))
+    without = model.m50(theta, Covariates.make(20.0, depth=0.0, u=u, v=v))
+    np.testing.assert_allclose(with_d - without, 1.3 * d, atol=1e-12)
+    # smooth term: Legendre P1(u) and P2(v) = (3 v^2 - 1) / 2
+    np.testing.assert_allclose(without, 24.0 + 0.2 * u - 0.1 * (3 * v ** 2 - 1) / 2, atol=1e-12)
+
+
+def test_size_covariate_and_width_depth_enter_as_documented():
+    cov, y = synthetic(40, 3)
+    spec = ModelSpec(name="s", spatial="depth", width_depth=True, size_covariate=True)
+    model = CompletenessModel(spec, uncompressed(cov, y))
+    assert model.names[-3:] == ["beta_depth", "w_depth", "beta_size"]
+    theta = model.inverse_transform(dict(m50_0=24.0, w=0.2, A=0.9, floor=0.02, beta_depth=1.0, w_depth=0.5,
+                                         beta_size=-3.0))
+    d, s = 0.4, 0.2
+    m50 = 24.0 + 1.0 * d - 3.0 * s
+    w = 0.2 * math.exp(0.5 * d)
+    m = m50 + w  # z = -1
+    f = model.prob(theta, Covariates.make(m, depth=d, size=s))
+    assert f[0] == pytest.approx(0.02 + 0.88 * special.expit(-1.0), rel=1e-12)
+
+
+@pytest.mark.parametrize("spec", ["logistic_depth_smooth", ModelSpec(name="p", link="probit", spatial="depth",
+                                                                      width_depth=True),
+                                  ModelSpec(name="q", link="pritchet", spatial="smooth", smooth_basis="bspline",
+                                            smooth_order=4)])
+def test_gradient_and_hessian_match_finite_differences(spec):
+    cov, y = synthetic(3000, 4)
+    model = CompletenessModel(spec, compress(cov, y, dm=0.05, ddepth=0.05, nuv=8))
+    rng = np.random.default_rng(5)
+    theta = model.initial() + rng.normal(0, 0.1, model.ndim)
+    value, grad = model.value_and_grad(theta)
+    assert value == pytest.approx(model.log_prob(theta), rel=1e-14)
+    h = 1e-5
+    fd = np.array([(model.log_prob(theta + h * e) - model.log_prob(theta - h * e)) / (2 * h)
+                   for e in np.eye(model.ndim)])
+    # central differences: truncation ~ h^2 f''' and rounding ~ 1e-16 |f| / h ~ 1e-8 here
+    np.testing.assert_allclose(grad, fd, rtol=1e-5, atol=1e-4)
+    hess = model.hessian(theta)
+    fdh = np.array([(model.value_and_grad(theta + h * e)[1] - model.value_and_grad(theta - h * e)[1]) / (2 * h)
+                    for e in np.eye(model.ndim)])
+    np.testing.assert_allclose(hess, fdh, rtol=1e-4, atol=1e-2)
+    np.testing.assert_allclose(hess, hess.T, rtol=1e-10, atol=1e-8)
+
+
+def test_prior_is_normalised_with_its_jacobians():
+    cov, y = synthetic(20, 6)
+    model = CompletenessModel("logistic", uncompressed(cov, y))
+    base = model.inverse_transform(dict(m50_0=24.0, w=0.2, A=0.9, floor=0.05))
+    i_a, i_f = model.names.index("logit_A"), model.names.index("logit_floor")
+    lp0 = model.log_prior(base)
+
+    def density(i, t):
+        th = base.copy()
+        th[i] = t
+        return math.exp(model.log_prior(th) - lp0)
+
+    # Beta(20, 1) on A = sigmoid(t): integral of the theta-space density over t is the density's
+    # normalisation 1 / p_t(t0); its mean of A is 20 / 21.  Same for r = floor / A ~ Beta(1, 50).
+    for i, (a, b) in ((i_a, (20.0, 1.0)), (i_f, (1.0, 50.0))):
+        s0 = special.expit(base[i])
+        p_t0 = stats.beta(a, b).pdf(s0) * s0 * (1 - s0)
+        norm, _ = integrate.quad(lambda t: density(i, t), -60, 60, limit=200, points=[base[i]])
+        mean, _ = integrate.quad(lambda t: special.expit(t) * density(i, t), -60, 60, limit=200, points=[base[i]])
+        assert norm * p_t0 == pytest.approx(1.0, rel=1e-6)
+        assert mean / norm == pytest.approx(a / (a + b), rel=1e-6)
+
+
+def test_floor_stays_below_plateau_for_any_theta():
+    cov, y = synthetic(20, 7)
+    model = CompletenessModel("logistic", uncompressed(cov, y))
+    thetas = np.random.default_rng(8).normal(0, 30, (2000, model.ndim))
+    p = model.transform(thetas)
+    assert np.all(p["floor"] <= p["A"]) and np.all(p["A"] <= 1) and np.all(p["floor"] >= 0)
+    fixed = CompletenessModel(ModelSpec(name="f", plateau="fixed"), uncompressed(cov, y))
+    assert fixed.names == ["m50_0", "log_w", "logit_floor"]
+    assert fixed.transform(np.array([24.0, -1.6, -3.0]))["A"] == 1.0
+
+
+def test_map_recovers_known_parameters():
+    # 20000 outcomes from logistic_depth with known truth; the MAP must lie within 4 Laplace sigma
+    # of the truth in every parameter (a 4-sigma miss has probability ~6e-5 per parameter).
+    truth = dict(m50_0=24.0, w=0.2, A=0.95, floor=0.01, beta_depth=1.0)
+    cov, y = synthetic(20000, 9, **{("m50" if k == "m50_0" else k): v for k, v in truth.items()})
+    model = CompletenessModel("logistic_depth", compress_for("logistic_depth", cov, y))
+    res = optimize.minimize(lambda t: tuple(-x for x in model.value_and_grad(t)), model.initial(), jac=True,
+                            method="L-BFGS-B")
+    assert res.success
+    sd = np.sqrt(np.diag(np.linalg.inv(-model.hessian(res.x))))
+    t_true = model.inverse_transform(truth)
+    assert np.all(np.abs(res.x - t_true) < 4 * sd), (res.x, t_true, sd)
+
+
+# --------------------------------------------------------------------------- stability
+
+def _cases():
+    rng = np.random.default_rng(17)
+    m = rng.uniform(20, 27, 200)
+    u = rng.uniform(-1, 1, 200)
+    v = rng.uniform(-1, 1, 200)
+    d = rng.normal(0, 0.1, 200)
+    spread = Covariates(m, d, u, v, np.zeros(200))
+    one_cell = Covariates(m, np.full(200, 0.05), np.full(200, 0.3), np.full(200, -0.2), np.zeros(200))
+    few = spread.take(np.arange(12))
+    return {
+        "all detected": (spread, np.ones(200, bool)),
+        "none detected": (spread, np.zeros(200, bool)),
+        "separated": (spread, m < 23.5),
+        "12 injections": (few, few.m < 24.0),
+        "one spatial cell": (one_cell, rng.uniform(size=200) < special.expit((24 - m) / 0.2)),
+    }
+
+
+@pytest.mark.parametrize("spec", ["logistic", "logistic_depth_smooth", "probit", "pritchet",
+                                  ModelSpec(name="fixed", plateau="fixed", floor="fixed", spatial="depth")])
+def test_degenerate_data_give_finite_posteriors(spec):
+    # uncompressed: the cases share one cell count (200), so each function compiles once per spec
+    for label, (cov, y) in _cases().items():
+        model = CompletenessModel(spec, uncompressed(cov, y))
+        theta = model.initial()
+        value, grad = model.value_and_grad(theta)
+        assert np.isfinite(value) and np.all(np.isfinite(grad)), label
+        if len(cov) == 200:  # (the Hessian is compiled for one data shape only, to keep the test fast)
+            assert np.all(np.isfinite(model.hessian(theta))), label
+        f = model.prob(theta, cov)
+        assert np.all((f >= 0) & (f <= 1)), label
+        for absurd in (np.full(model.ndim, 1e6), np.full(model.ndim, -1e6), np.full(model.ndim, 1e300),
+                       np.full(model.ndim, np.nan), np.where(np.arange(model.ndim) % 2 == 0, 1e6, -1e6)):
+            lp = model.log_prob(absurd)
+            assert not np.isnan(lp) and lp < value, (label, absurd[:2], lp)
+            v2, g2 = model.value_and_grad(absurd)
+            assert not np.isnan(v2) and not np.any(np.isnan(g2)), label
+        if len(cov) == 200:
+            batch = model.log_prob_batch(np.stack([theta, np.full(model.ndim, np.nan)]))
+            assert batch[0] == pytest.approx(value, rel=1e-12) and batch[1] == -np.inf
+
+
+def test_initial_lands_near_the_transition():
+    cov, y = synthetic(5000, 18)
+    model = CompletenessModel("logistic", compress_for("logistic", cov, y))
+    p = model.transform(model.initial())
+    assert abs(p["m50_0"] - 24.0) < 0.3 and 0.05 < p["w"] < 0.5  # grid step of m50 is ~0.1 mag
+
+
+# --------------------------------------------------------------------------- jit, batches, pointwise
+
+def test_compiled_once_per_model_and_batches_agree():
+    cov, y = synthetic(700, 19)
+    model = CompletenessModel(ModelSpec(name="jit", spatial="depth", width_depth=True),
+                              compress(cov, y, dm=0.01))
+    theta = model.initial()
+    model.log_prob(theta)
+    model.value_and_grad(theta)
+    before = TRACE_COUNT["log_prob"]
+    rng = np.random.default_rng(20)
+    thetas = theta + rng.normal(0, 0.05, (7, model.ndim))
+    values = [model.log_prob(t) for t in thetas]
+    for t in thetas:
+        model.value_and_grad(list(t))  # a list converts to the same float64 (D,) array
+    assert TRACE_COUNT["log_prob"] == before
+    np.testing.assert_allclose(model.log_prob_batch(thetas), values, rtol=1e-13)
+    with pytest.raises(InputError, match="shape"):
+        model.log_prob(theta[:-1])
+
+
+def test_cell_loglik_reproduces_the_likelihood_in_chunks():
+    cov, y = synthetic(2000, 21)
+    data = compress(cov, y, dm=0.02, ddepth=0.05, nuv=4)
+    model = CompletenessModel("logistic_depth_smooth", data)
+    rng = np.random.default_rng(22)
+    thetas = model.initial() + rng.normal(0, 0.05, (5, model.ndim))
+    cl = model.cell_loglik(thetas, max_elements=3 * 2 * data.ncells)  # chunks of 3 samples, last one padded
+    assert cl.shape == (5, data.ncells, 2)
+    total = (cl[..., 0] * data.k + cl[..., 1] * (data.n - data.k)).sum(axis=1)
+    np.testing.assert_allclose(total, [model.log_likelihood(t) for t in thetas], rtol=1e-12)
+    np.testing.assert_allclose(np.exp(cl[..., 0]) + np.exp(cl[..., 1]), 1.0, atol=1e-14)
+    f = model.prob(thetas, data.cov)
+    assert f.shape == (5, data.ncells)
+    np.testing.assert_allclose(f, np.exp(cl[..., 0]), rtol=1e-12)

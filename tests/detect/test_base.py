@@ -1,0 +1,114 @@
+"""What both detection backends share (comest_bayes.detect.base): the filter kernels and the noise map the
+threshold is relative to, as known answers without running a detection.
+"""
+
+import numpy as np
+import pytest
+
+from comest_bayes.detect.base import DEFAULT_CONV, filter_kernel, noise_map
+from comest_bayes.errors import ConfigError
+from conftest import FWHM_PER_SIGMA
+
+SEXTRACTOR_SHARE = "/usr/share/source-extractor"
+
+
+def test_noise_map_fills_masked_pixels_with_the_median():
+    rms = np.arange(16, dtype=np.float32).reshape(4, 4) + 1
+    mask = np.zeros((4, 4), bool)
+    mask[0, 0] = True
+    weight = np.full((4, 4), np.inf, np.float32)
+    weight[~mask] = 2.0
+    out, mode = noise_map("weight", rms, 3.0, weight, mask)
+    assert mode == "weight" and np.all(np.isfinite(out))
+    scale = np.median(rms[~mask]) / 2.0
+    np.testing.assert_allclose(out, 2.0 * scale)
+
+
+# --------------------------------------------------------------------------- filter kernels
+
+
+def test_default_kernel_is_sextractors_default_conv():
+    kernel = filter_kernel("default")
+    assert kernel.shape == (3, 3) and kernel.dtype == np.float32
+    assert kernel.sum() == pytest.approx(1.0, abs=1e-7)
+    np.testing.assert_allclose(kernel, np.array([[1, 2, 1], [2, 4, 2], [1, 2, 1]]) / 16.0, rtol=1e-7)
+    np.testing.assert_allclose(kernel, DEFAULT_CONV / 16.0)
+
+
+def test_default_kernel_equals_the_installed_default_conv():
+    path = f"{SEXTRACTOR_SHARE}/default.conv"
+    try:
+        kernel = filter_kernel(path)
+    except ConfigError:
+        pytest.skip(f"{path} not installed (Debian package source-extractor)")
+    np.testing.assert_allclose(kernel, filter_kernel("default"), rtol=1e-7)
+
+
+@pytest.mark.parametrize("fwhm, n", [(2.0, 3), (3.0, 5), (3.0, 7), (4.5, 9)])
+def test_gauss_kernels(fwhm, n):
+    kernel = filter_kernel(f"gauss_{fwhm}_{n}x{n}")
+    assert kernel.shape == (n, n)
+    assert kernel.sum() == pytest.approx(1.0, abs=1e-6)
+    c = n // 2
+    np.testing.assert_allclose(kernel, kernel.T)  # circular
+    np.testing.assert_allclose(kernel, kernel[::-1, ::-1])
+    # Its FWHM: a Gaussian sampled at pixel centres has k(r)/k(0) = exp(-r^2 / 2 sigma^2).
+    sigma = np.sqrt(-1.0 / (2.0 * np.log(kernel[c, c + 1] / kernel[c, c])))
+    assert sigma * FWHM_PER_SIGMA == pytest.approx(fwhm, rel=1e-5)
+    # Separable: the corner holds the product of the two 1-D factors.
+    assert kernel[c + 1, c + 1] * kernel[c, c] == pytest.approx(kernel[c, c + 1] ** 2, rel=1e-5)
+
+
+@pytest.mark.parametrize("name, pattern", [
+    ("gauss_2.0_4x4", r"odd square size"),
+    ("gauss_2.0_5x7", r"odd square size"),
+    ("gaussian", r"neither 'default', 'none', 'gauss_<fwhm>_<n>x<n>' nor an existing"),
+    ("/nonexistent/file.conv", r"nor an existing SExtractor \.conv file"),
+])
+def test_bad_filter_names(name, pattern):
+    with pytest.raises(ConfigError, match=pattern):
+        filter_kernel(name)
+
+
+def test_bad_conv_files(tmp_path):
+    ragged = tmp_path / "ragged.conv"
+    ragged.write_text("CONV NORM\n1 2 1\n2 4\n")
+    with pytest.raises(ConfigError, match="rectangular kernel"):
+        filter_kernel(str(ragged))
+    zero = tmp_path / "zero.conv"
+    zero.write_text("CONV NORM\n-1 2 -1\n")
+    with pytest.raises(ConfigError, match="cannot be normalised"):
+        filter_kernel(str(zero))
+
+
+def test_noise_map_weight_mode_takes_the_shape_from_the_weights_and_the_level_from_the_rms():
+    # a two-level weight map (sigma 1 and 3) and a measured RMS that is 2.5 x the weight sigma nearly
+    # everywhere: the result is 2.5 x the weight sigma, whatever the masked pixels hold
+    weight = np.ones((10, 10), np.float32)
+    weight[:, 5:] = 3.0
+    rms = 2.5 * weight
+    rms[0, :3] = 50.0  # three outliers do not move the median ratio
+    mask = np.zeros((10, 10), bool)
+    mask[9, 9] = True
+    for copy in (True, False):
+        out, mode = noise_map("auto", rms.copy(), 7.0, weight, mask, copy=copy)
+        assert mode == "weight" and out.dtype == np.float32
+        np.testing.assert_allclose(out[~mask], 2.5 * weight[~mask], rtol=1e-6)
+        # the masked pixel gets the median of the others
+        assert out[9, 9] == pytest.approx(np.median(2.5 * weight[~mask]))
+
+
+def test_noise_map_global_and_background_modes():
+    rms = np.arange(1.0, 17.0, dtype=np.float32).reshape(4, 4)
+    mask = np.zeros((4, 4), bool)
+    out, mode = noise_map("global", rms, 3.5, None, mask)
+    assert mode == "global" and np.all(out == np.float32(3.5))
+    out, mode = noise_map("auto", rms, 3.5, None, mask)  # no weight map: the background RMS itself
+    assert mode == "background"
+    np.testing.assert_array_equal(out, rms)
+    assert out is not rms
+    # a NaN in the RMS is filled like a masked pixel; with copy=False the RMS buffer itself is returned
+    rms[1, 1] = np.nan
+    out, _ = noise_map("background", rms, 3.5, None, mask, copy=False)
+    assert out is rms and out[1, 1] == pytest.approx(np.median(np.delete(np.arange(1.0, 17.0), 5)))
+
