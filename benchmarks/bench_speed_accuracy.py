@@ -577,12 +577,14 @@ def merge_earlier(report: dict, earlier: dict, methods) -> dict:
     """
     cmd = earlier.get("command")
     for m, text in earlier.get("methods", {}).items():
-        report["methods"].setdefault(m, text + (f" (numbers from the earlier run: {cmd})" if m not in methods else ""))
+        if m not in methods:
+            report["methods"][m] = text if "numbers from" in text else f"{text} (numbers from the earlier run: {cmd})"
     for scene, old in earlier.get("scenes", {}).items():
         new = report["scenes"].get(scene)
         if new is None:
             report["scenes"][scene] = {**old, "earlier_run": old.get("earlier_run", cmd)}
             continue
+        scene_cmd = old.get("earlier_run", cmd)  # a scene kept whole by a merge names the run that made it
         for ref, res in old.get("results", {}).items():
             if ref not in new["results"]:
                 continue
@@ -596,7 +598,7 @@ def merge_earlier(report: dict, earlier: dict, methods) -> dict:
                         continue
                     ob = row.get("binned") or {}
                     target[m] = {**numbers, "earlier_run": {
-                        "command": cmd, "pool_injections": old.get("pool_injections"),
+                        "command": scene_cmd, "pool_injections": old.get("pool_injections"),
                         "binned": {k: ob.get(k) for k in ("replicates", "m50_rmse", "curve_rmse")}}}
         new["headline"] = {k: headline(v) for k, v in new["results"].items()}
     return report
