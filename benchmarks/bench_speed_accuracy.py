@@ -20,8 +20,17 @@ injections) four estimators of the completeness curve are compared:
     what a user gets by default: :func:`comest_bayes.bayes.fit.fit_kind` with
     ``--model auto`` (the ladder logistic -> logistic_depth ->
     richards_depth -> spline_depth chosen by Laplace LOO and the adequacy
-    check, then the chosen model's importance-sampled posterior), averaged
-    over the same footprint noise quantiles.  This is the headline model.
+    check, then the chosen model's importance-sampled posterior), called as
+    the pipeline's fit stage calls it: the subset's rows of the run's
+    outcome table (every column), the image shape, the mask and the
+    footprint histograms and noise grid of
+    :func:`comest_bayes.fitting.shared_maps` computed once from the run's
+    ``noise.fits`` (the detection noise map) and ``mask.fits``.  This is
+    the headline model.
+
+Every model curve is the completeness averaged over the footprint as a run
+averages it: over every unmasked pixel of the run's noise map and mask (the
+footprint cells of ``shared_maps``), weighted by their pixel counts.
 
 Two scenes:
 
@@ -57,12 +66,15 @@ with every number, ``speed_accuracy.png`` with the chart.  The pools are
 kept under ``--work`` (default a temporary directory) and reused when the
 command is repeated with the same ``--work``.
 
-Run: ``python benchmarks/bench_speed_accuracy.py --work DIR`` (about 25 minutes
-on 2 cores with the defaults: 5 minutes of injection pools, 20 of fits; a
-rerun with the same ``--work`` reuses the pools); ``--quick`` for a small
-smoke run.  The largest default budget is 100,000 injections: the pools hold
-about 300,000 injections outside the held-out third, so a larger budget would
-have a single replicate and no RMSE worth the name.
+Run: ``python benchmarks/bench_speed_accuracy.py --work DIR``; a rerun with
+the same ``--work`` reuses the pools; ``--quick`` for a small smoke run.  The
+default pools (400 analytic and 100 demo realizations, about 920,000 and
+980,000 injections) keep about 610,000 and 650,000 injections outside the
+held-out third: two disjoint replicates at the largest default budget,
+300,000.  ``--estimators`` runs a subset (the binned method always runs);
+the other estimators' numbers already in ``--out``'s ``speed_accuracy.json``
+are kept, each row marked with the command that produced it and scored
+against that run's binned errors.
 """
 
 from __future__ import annotations
@@ -98,7 +110,6 @@ CURVE_WINDOW = (-1.5, 1.0)  # curve error window around the reference m50 (mag)
 GRID_STEP = 0.02
 PROBE_LEVELS = (0.9, 0.5, 0.1)   # f is checked where the reference curve passes these values
 SUMMARY_DRAWS = 1000   # posterior draws summarised per estimate
-FOOTPRINT_QUANTILES = 400   # depth quantiles of the footprint over which model curves are averaged
 
 
 # --------------------------------------------------------------------------- scenes
@@ -158,8 +169,8 @@ def build_pool(scene: dict, out: Path, *, nsims: int, density: float, seed: int,
     summary = json.loads((out / "summary.json").read_text())
     state = json.loads((out / "run.json").read_text())
     outcomes = Table.read(out / "catalogs" / "point_outcomes.fits")
-    # wall seconds per step summed over realizations; each realization runs single-threaded in
-    # one worker, so these are its CPU seconds
+    # seconds per step summed over realizations (wall seconds in the worker; ``cpu``: the
+    # realizations' CPU seconds, see injection_cpu)
     seconds = summary["kinds"]["point"]["seconds"]
     n_all = summary["kinds"]["point"]["counts"]["injected"]
     per_inj = {k: float(v) / max(n_all, 1) for k, v in seconds.items()}
@@ -201,41 +212,68 @@ def _bin_of(est: dict, m: float) -> int:
     return min(max(i, 0), len(est["centers"]) - 1)
 
 
-def model_estimates(mag, det, noise, *, spec_name: str, seed: int, with_emcee: bool, wide,
-                    noise_footprint=None) -> dict:
+def run_maps(run_dir: Path, requested) -> dict:
+    """What a run's fit stage takes from its maps, read from the pool's run directory.
+
+    The detection noise map (``noise.fits``: the detection's noise, which is
+    also what the outcome table's ``noise`` column samples at each true
+    position) and the mask (``mask.fits``), and
+    :func:`comest_bayes.fitting.shared_maps` of them for the ``requested``
+    models: the footprint histograms and the noise grid that the pipeline
+    computes once and passes to every ``fit_kind``.  ``cpu`` is the CPU
+    seconds of that one pass, which a run spends once in its fit stage.
+    """
+    from comest_bayes.fitting import shared_maps
+
+    noise = fits.getdata(run_dir / "noise.fits").astype(np.float32)
+    mask = fits.getdata(run_dir / "mask.fits").astype(bool)
+    c0 = time.process_time()
+    shared = shared_maps(noise, mask, sorted(set(requested)))
+    return {"shape": tuple(noise.shape), "mask": mask, "shared": shared, "cpu": time.process_time() - c0}
+
+
+def _footprint_cells(maps: dict, spec, sigma_ref):
+    """The footprint cells a run's fit of ``spec`` averages over (``fit_kind`` without footprint points)."""
+    from comest_bayes.fitting import footprint_grid
+    from comest_bayes.posterior import Footprint
+
+    hist = maps["shared"]["footprints"][footprint_grid(spec.uses_smooth)]
+    return Footprint.from_histogram(hist, sigma_ref)
+
+
+def model_estimates(rows: Table, *, spec_name: str, seed: int, wide, maps: dict, methods) -> dict:
     """MAP, Laplace and (optionally) emcee of one model on one subset.
 
     Every estimate refers to the same quantity as the binned method: the
-    completeness averaged over the footprint, f(m) = mean_q f(m, d_q), and
-    m50 = where that average curve crosses 0.5 (per posterior draw).  The
-    footprint is represented by ``noise_footprint``, equally spaced quantiles
-    of the noise at the pool's injected positions (what the noise map gives a
-    user); a random sample of a few hundred positions would add ~0.01 mag of
-    scatter to m50 on a tile whose depth varies.
-    Returns, per method, the draws of the average curve on ``wide`` (S, G),
-    their m50 (S,) and the CPU seconds of the fit (cumulative: Laplace
-    includes the MAP, emcee both).
+    completeness averaged over the footprint, f(m) = sum_c w_c f(m, d_c) over
+    the footprint cells of the run's noise map and mask (what ``fit_kind``
+    averages over in a run), and m50 = where that average curve crosses 0.5
+    (per posterior draw).  ``rows`` are the subset's rows of the outcome
+    table; the model sees the columns it uses (``mag``, ``detected`` and, for
+    a model with depth, ``noise``), as in a run.
+    Returns, per method in ``methods`` (of map, laplace, emcee), the draws of
+    the average curve on ``wide`` (S, G), their m50 (S,) and the CPU seconds
+    of the fit (cumulative: Laplace includes the MAP, emcee both).
     """
     spec = load_spec(spec_name)
-    cols = {"mag": np.asarray(mag, float), "detected": np.asarray(det)}
-    if noise is not None:
-        cols["noise"] = np.asarray(noise, float)
+    cols = {"mag": np.asarray(rows["mag"], float), "detected": np.asarray(rows["detected"], bool)}
+    if spec.spatial != "none":
+        cols["noise"] = np.asarray(rows["noise"], float)
     cov, outcome, meta = covariates_from_outcomes(cols, image_shape=None)
     data = compress_for(spec, cov, outcome, meta=meta)
     model = CompletenessModel(spec, data)
     rng = np.random.default_rng(seed)
-    if spec.spatial == "none" or noise_footprint is None:
-        depths = cov.depth[:1]
+    if spec.spatial == "none":
+        depths, weights = np.zeros(1), np.ones(1)
     else:
-        nf = np.asarray(noise_footprint, float)
-        fp, _, _ = covariates_from_outcomes({"mag": np.zeros(nf.size), "detected": np.zeros(nf.size, bool),
-                                             "noise": nf}, image_shape=None, sigma_ref=meta["sigma_ref"])
-        depths = fp.depth
+        cells = _footprint_cells(maps, spec, meta["sigma_ref"])
+        depths, weights = np.asarray(cells.depth, float), np.asarray(cells.weight, float)
     cov_avg = Covariates.make(m=np.repeat(wide, len(depths)), depth=np.tile(depths, len(wide)))
 
     def summarize(thetas, seconds):
         thetas = np.atleast_2d(thetas)
-        curves = np.asarray(model.prob(thetas, cov_avg)).reshape(len(thetas), len(wide), len(depths)).mean(axis=2)
+        f = np.asarray(model.prob(thetas, cov_avg)).reshape(len(thetas), len(wide), len(depths))
+        curves = f @ (weights / weights.sum())
         return {"curves": curves, "m50s": crossing_magnitudes(wide, curves, 0.5), "cpu": seconds}
 
     res = {}
@@ -244,15 +282,19 @@ def model_estimates(mag, det, noise, *, spec_name: str, seed: int, with_emcee: b
         warnings.simplefilter("ignore")
         mp = fit_map(model, seed=seed)
     t_map = time.process_time() - c0
-    res["map"] = summarize(mp.theta, t_map)
+    if "map" in methods:
+        res["map"] = summarize(mp.theta, t_map)
+    if "laplace" not in methods and "emcee" not in methods:
+        return res
     c0 = time.process_time()
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
         lap = laplace(model, mp.theta)
     draws = rng.multivariate_normal(lap.mean, lap.cov, size=SUMMARY_DRAWS)
     t_lap = t_map + time.process_time() - c0
-    res["laplace"] = summarize(draws, t_lap)
-    if with_emcee:
+    if "laplace" in methods:
+        res["laplace"] = summarize(draws, t_lap)
+    if "emcee" in methods:
         c0 = time.process_time()
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")
@@ -264,31 +306,33 @@ def model_estimates(mag, det, noise, *, spec_name: str, seed: int, with_emcee: b
     return res
 
 
-def auto_estimate(mag, det, noise, *, seed: int, wide, noise_footprint, mag_range) -> dict:
-    """The package's default fit (``auto``) of one subset: curves of the footprint average on ``wide``."""
+def auto_estimate(rows: Table, *, seed: int, wide, maps: dict, mag_range) -> dict:
+    """The package's default fit (``auto``) of one subset, as the pipeline's fit stage makes it.
+
+    ``rows``: the subset's rows of the run's outcome table, every column (``fit_task`` reads the
+    whole table).  The footprint histograms and noise grid come from ``maps`` (:func:`run_maps`),
+    as ``shared_maps`` hands them to ``fit_task``; the noise map itself is then not needed
+    (``fit_task`` passes none), the mask is.  Returns the curves of the footprint average on
+    ``wide``, their m50, the CPU seconds (the fit, the summary draws and the one pass over the
+    maps a run makes), the chosen model and the selection table.
+    """
     from comest_bayes.config import RunConfig
     from comest_bayes.bayes.fit import fit_kind
 
-    cols = {"mag": np.asarray(mag, float), "detected": np.asarray(det, bool)}
-    if noise is not None:
-        cols["noise"] = np.asarray(noise, float)
-    table = Table(cols)
     edges = R.magnitude_edges(mag_range[0], mag_range[1], BIN_WIDTH)
-    if noise is not None and noise_footprint is not None:
-        nf = np.asarray(noise_footprint, float)
-        points = (np.zeros(nf.size), np.zeros(nf.size), nf)
-    else:
-        points = (np.zeros(1), np.zeros(1), np.ones(1))
     c0 = time.process_time()
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
-        post, entry = fit_kind(table, kind="point", quantity="completeness", requested="auto",
-                               config=RunConfig(seed=int(seed)), image_shape=(2, 2), noise=np.ones((2, 2)),
-                               mask=np.zeros((2, 2), bool), wcs_header=None, mag_range=tuple(mag_range),
-                               mag_centers=0.5 * (edges[:-1] + edges[1:]), footprint_points=points)
+        post, entry = fit_kind(rows, kind="point", quantity="completeness", requested="auto",
+                               config=RunConfig(seed=int(seed)), image_shape=maps["shape"], noise=None,
+                               mask=maps["mask"], wcs_header=None, mag_range=tuple(mag_range),
+                               mag_centers=0.5 * (edges[:-1] + edges[1:]),
+                               footprints=maps["shared"]["footprints"], noise_grid=maps["shared"]["noise_grid"])
         curves = post.average_curve(wide, nsamples=SUMMARY_DRAWS)
-    cpu = time.process_time() - c0
-    return {"curves": curves, "m50s": crossing_magnitudes(wide, curves, 0.5), "cpu": cpu, "chosen": entry["name"]}
+    cpu = time.process_time() - c0 + maps["cpu"]
+    sel = entry.get("selection") or {}
+    return {"curves": curves, "m50s": crossing_magnitudes(wide, curves, 0.5), "cpu": cpu, "chosen": entry["name"],
+            "selection": sel.get("table"), "rule": sel.get("rule"), "n_cells": entry.get("n_cells")}
 
 
 def probe_magnitudes(ref: dict) -> np.ndarray:
@@ -376,34 +420,44 @@ def pool_reference(mag, det, mag_range) -> dict:
 # --------------------------------------------------------------------------- the study
 
 
+def injection_cpu(spi: dict) -> tuple[float, float]:
+    """CPU seconds per injection of (injection, detection) from a pool's per-step seconds.
+
+    The steps (make, render, detect, match) are wall seconds in the worker; ``cpu``, when the
+    summary has it, is the realization's CPU time, which is then split between injection and
+    detection in the proportion of their wall seconds (summing both with ``cpu`` would count
+    every second twice).  Without ``cpu`` the wall seconds stand for CPU seconds.
+    """
+    steps = {k: float(v) for k, v in spi.items() if k != "cpu"}
+    wall = sum(steps.values())
+    det_share = steps.get("detect", 0.0) / wall if wall > 0 else 0.0
+    total = float(spi["cpu"]) if "cpu" in spi else wall
+    return total * (1.0 - det_share), total * det_share
+
+
 def evaluate(pool: dict, refs: dict, *, spec_name: str, budgets, max_replicates: int, seed: int, emcee_max: int,
-             log, exclude: np.ndarray | None = None) -> dict:
+             log, maps: dict, methods=METHODS, exclude: np.ndarray | None = None, trace=None) -> dict:
     """Errors, calibration and costs per reference, method and budget.
 
     Returns ``{ref_name: {budget: {method: numbers}}}``; the fits are done
-    once per replicate and scored against every reference.
+    once per replicate and scored against every reference.  ``methods``: the
+    estimators to run (the binned method always runs).  Each row keeps the
+    replicates' m50 errors (``m50_errors``), so bias and scatter can be read
+    apart; ``auto`` keeps the model chosen per replicate.  ``trace``: a
+    callable given one dict per replicate (m50 of every estimate, auto's
+    selection table), for a closer look at a budget.
     """
     out = pool["outcomes"]
     mag = np.asarray(out["mag"], float)
     det = np.asarray(out["detected"], bool)
-    noise = np.asarray(out["noise"], float) if spec_name != "logistic" else None
     idx = np.arange(len(mag)) if exclude is None else np.flatnonzero(~exclude)
     idx = np.random.default_rng(seed).permutation(idx)
-    noise_fp = None
-    if noise is not None:
-        finite = noise[np.isfinite(noise) & (noise > 0)]
-        noise_fp = np.quantile(finite, (np.arange(FOOTPRINT_QUANTILES) + 0.5) / FOOTPRINT_QUANTILES)
-    # the default fit always sees the noise column, as a run's outcome table has it
-    noise_all = np.asarray(out["noise"], float)
-    finite_all = noise_all[np.isfinite(noise_all) & (noise_all > 0)]
-    noise_fp_all = np.quantile(finite_all, (np.arange(FOOTPRINT_QUANTILES) + 0.5) / FOOTPRINT_QUANTILES)
+    fitted = [m for m in ("map", "laplace", "emcee") if m in methods]
     for r in refs.values():
         r["probes"] = probe_magnitudes(r)
     m50s = [r["m50"] for r in refs.values()]
     wide = np.arange(min(m50s) + CURVE_WINDOW[0] - 1.0, max(m50s) + CURVE_WINDOW[1] + 1.0 + 1e-9, GRID_STEP)
-    spi = pool["seconds_per_injection"]
-    inj_cost = sum(v for k, v in spi.items() if k != "detect")
-    det_cost = spi.get("detect", 0.0)
+    inj_cost, det_cost = injection_cpu(pool["seconds_per_injection"])
     results = {name: {} for name in refs}
     for budget in budgets:
         nrep = min(max_replicates, len(idx) // budget)
@@ -414,16 +468,24 @@ def evaluate(pool: dict, refs: dict, *, spec_name: str, budgets, max_replicates:
         chosen = []
         t0 = time.perf_counter()
         for r in range(nrep):
-            sub = idx[r * budget:(r + 1) * budget]
+            sub = np.sort(idx[r * budget:(r + 1) * budget])
+            rows = out[sub]
             c0 = time.process_time()
             b = binned_estimate(mag[sub], det[sub], pool["mag_range"])
             t_b = time.process_time() - c0
-            est = model_estimates(mag[sub], det[sub], None if noise is None else noise[sub], spec_name=spec_name,
-                                  seed=seed + 1000 * r + budget, with_emcee=r < emcee_max, wide=wide,
-                                  noise_footprint=noise_fp)
-            est["auto"] = auto_estimate(mag[sub], det[sub], noise_all[sub], seed=seed + 1000 * r + budget, wide=wide,
-                                        noise_footprint=noise_fp_all, mag_range=pool["mag_range"])
-            chosen.append(est["auto"]["chosen"])
+            rseed = seed + 1000 * r + budget
+            est = {}
+            if fitted:
+                est.update(model_estimates(rows, spec_name=spec_name, seed=rseed, wide=wide, maps=maps,
+                                           methods=[m for m in fitted if m != "emcee" or r < emcee_max]))
+            if "auto" in methods:
+                est["auto"] = auto_estimate(rows, seed=rseed, wide=wide, maps=maps, mag_range=pool["mag_range"])
+                chosen.append(est["auto"]["chosen"])
+            if trace is not None:
+                trace({"budget": budget, "replicate": r, "seed": rseed, "binned_m50": b["m50"],
+                       **{f"{m}_m50": float(np.nanmedian(e["m50s"])) for m, e in est.items()},
+                       **({} if "auto" not in est else
+                          {k: est["auto"][k] for k in ("chosen", "rule", "selection", "n_cells")})})
             for name, ref in refs.items():
                 scores[name]["binned"].append(score_binned(b, ref, t_b))
                 for m, e in est.items():
@@ -440,7 +502,9 @@ def evaluate(pool: dict, refs: dict, *, spec_name: str, budgets, max_replicates:
                     "replicates": int(len(err)),
                     "m50_rmse": float(np.sqrt(np.nanmean(err ** 2))),
                     "m50_bias": float(np.nanmean(err)),
+                    "m50_sd": float(np.nanstd(err, ddof=1)) if np.isfinite(err).sum() > 1 else None,
                     "m50_failed": int(np.sum(~np.isfinite(err))),
+                    "m50_errors": [float(v) for v in err],
                     "curve_rmse": float(np.sqrt(np.nanmean(np.square([d["curve_rms"] for d in lst])))),
                     "cpu_inject": budget * inj_cost,
                     "cpu_detect": budget * det_cost,
@@ -453,9 +517,14 @@ def evaluate(pool: dict, refs: dict, *, spec_name: str, budgets, max_replicates:
                 }
             if "auto" in row:
                 row["auto"]["chosen"] = {c: chosen.count(c) for c in sorted(set(chosen))}
+                row["auto"]["chosen_per_replicate"] = list(chosen)
             results[name][str(budget)] = row
             log(f"  budget {budget:>7d} vs {name}: {nrep} replicates ({time.perf_counter() - t0:.0f} s); m50 RMSE "
-                + ", ".join(f"{m} {row[m]['m50_rmse']:.4f}" for m in row))
+                + ", ".join(f"{m} {row[m]['m50_rmse']:.4f}" for m in row)
+                + ("" if "auto" not in row else
+                   f"; auto bias {row['auto']['m50_bias']:+.4f}, chose "
+                   + ", ".join(f"{c} x{k}" for c, k in row["auto"]["chosen"].items())
+                   + f"; fit CPU auto {row['auto']['cpu_fit']:.1f} s"))
     return results
 
 
@@ -477,7 +546,9 @@ def headline(results: dict) -> dict:
     method's accuracy with 1/efficiency of its injections).  Given for m50 and
     for the whole curve.  Where an error stops falling with N (a bias floor of
     the model's shape, or of the reference), the ratio no longer converts into
-    injections, and the JSON keeps the RMSEs to show it.
+    injections, and the JSON keeps the RMSEs to show it.  A row kept from an
+    earlier run (``earlier_run``, see :func:`merge_earlier`) is compared with
+    that run's binned errors, not with this run's.
     """
     out = {}
     for model in ("auto", "map", "laplace", "emcee"):
@@ -486,15 +557,52 @@ def headline(results: dict) -> dict:
             row = results[str(b)]
             if model not in row or "binned" not in row:
                 continue
-            rb, rm = row["binned"], row[model]
+            rb, rm = row.get(model, {}).get("earlier_run", {}).get("binned") or row["binned"], row[model]
             eff = lambda key: (float((rb[key] / rm[key]) ** 2)
                                if rm[key] and np.isfinite(rm[key]) and np.isfinite(rb[key]) else None)
             rows.append({"budget": b, "replicates": rm["replicates"], "binned_m50_rmse": rb["m50_rmse"],
+                         **({"earlier_run": rm["earlier_run"]["command"]} if "earlier_run" in rm else {}),
                          "model_m50_rmse": rm["m50_rmse"], "m50_efficiency": eff("m50_rmse"),
                          "binned_curve_rmse": rb["curve_rmse"], "model_curve_rmse": rm["curve_rmse"],
                          "curve_efficiency": eff("curve_rmse")})
         out[model] = rows
     return out
+
+
+def merge_earlier(report: dict, earlier: dict, methods) -> dict:
+    """Keep the rows of the estimators this run did not run from an earlier ``speed_accuracy.json``.
+
+    A kept row is marked ``earlier_run``: the earlier command, its pool size and the binned errors
+    of that run at the same budget (its own pool and subsets), which its efficiency is computed
+    against.  A scene this run did not evaluate is kept whole.  The headline is recomputed.
+    """
+    cmd = earlier.get("command")
+    for m, text in earlier.get("methods", {}).items():
+        if m not in methods:
+            report["methods"][m] = text if "numbers from" in text else f"{text} (numbers from the earlier run: {cmd})"
+    for scene, old in earlier.get("scenes", {}).items():
+        new = report["scenes"].get(scene)
+        if new is None:
+            report["scenes"][scene] = {**old, "earlier_run": old.get("earlier_run", cmd)}
+            continue
+        scene_cmd = old.get("earlier_run", cmd)  # a scene kept whole by a merge names the run that made it
+        for ref, res in old.get("results", {}).items():
+            if ref not in new["results"]:
+                continue
+            for b, row in res.items():
+                target = new["results"][ref].setdefault(b, {})
+                for m, numbers in row.items():
+                    if m == "binned" or m in methods or m in target:
+                        continue
+                    if "earlier_run" in numbers:
+                        target[m] = numbers
+                        continue
+                    ob = row.get("binned") or {}
+                    target[m] = {**numbers, "earlier_run": {
+                        "command": scene_cmd, "pool_injections": old.get("pool_injections"),
+                        "binned": {k: ob.get(k) for k in ("replicates", "m50_rmse", "curve_rmse")}}}
+        new["headline"] = {k: headline(v) for k, v in new["results"].items()}
+    return report
 
 
 def chart(report: dict, path: Path) -> None:
@@ -523,20 +631,25 @@ def chart(report: dict, path: Path) -> None:
                 get = lambda key: np.array([np.nan if r[key] is None else r[key] for _, r in rows], float)
                 cpu = get("cpu_total")
                 style = dict(color=colors[m], marker=markers[m], ms=5 if main_ref else 3)
+                if any("earlier_run" in r for _, r in rows):
+                    style.update(alpha=0.5)
+                    m_label = f"{m} (earlier run)"
+                else:
+                    m_label = m
                 if main_ref:
-                    axes[0, j].loglog(cpu, get("m50_rmse"), label=m, **style)
-                    axes[1, j].loglog(cpu, get("curve_rmse"), label=m, **style)
+                    axes[0, j].loglog(cpu, get("m50_rmse"), label=m_label, **style)
+                    axes[1, j].loglog(cpu, get("curve_rmse"), label=m_label, **style)
                     if m != "binned":
-                        axes[2, j].semilogx(bb, get("m50_coverage68"), ls="-", label=f"{m}: m50", **style)
-                    axes[2, j].semilogx(bb, get("f_coverage68"), ls=":", mfc="none", label=f"{m}: f at 3 probes",
-                                        **style)
+                        axes[2, j].semilogx(bb, get("m50_coverage68"), ls="-", label=f"{m_label}: m50", **style)
+                    axes[2, j].semilogx(bb, get("f_coverage68"), ls=":", mfc="none",
+                                        label=f"{m_label}: f at 3 probes", **style)
                     if m == "binned":
                         for x, y, b in zip(cpu, get("m50_rmse"), bb):
                             axes[0, j].annotate(f"{b // 1000}k" if b >= 1000 else str(b), (x, y), fontsize=7,
                                                 xytext=(-4, -11), textcoords="offset points", color=colors[m])
                 elif m in ("binned", "emcee"):
-                    axes[0, j].loglog(cpu, get("m50_rmse"), ls="--", alpha=0.5, lw=1,
-                                      label=f"{m} vs {ref_name}", **style)
+                    axes[0, j].loglog(cpu, get("m50_rmse"), ls="--", lw=1,
+                                      label=f"{m_label} vs {ref_name}", **{"alpha": 0.5, **style})
         refs = info["references"]
         title = (f"{scene} scene, model {info['model']}\nreference: {primary}, m50 = {refs[primary]['m50']:.3f}")
         if len(refs) > 1:
@@ -563,11 +676,13 @@ def chart(report: dict, path: Path) -> None:
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("--scenes", default="analytic,demo")
-    p.add_argument("--budgets", default="1000,2000,5000,10000,30000,100000")
+    p.add_argument("--budgets", default="1000,2000,5000,10000,30000,100000,300000")
+    p.add_argument("--estimators", default=",".join(METHODS),
+                   help="estimators to run (binned always runs); the others' rows already in --out are kept")
     p.add_argument("--replicates", type=int, default=16, help="max replicates per budget (disjoint subsets)")
     p.add_argument("--emcee-replicates", type=int, default=8, help="replicates per budget that run emcee")
-    p.add_argument("--analytic-nsims", type=int, default=200)
-    p.add_argument("--demo-nsims", type=int, default=50)
+    p.add_argument("--analytic-nsims", type=int, default=400)
+    p.add_argument("--demo-nsims", type=int, default=100)
     p.add_argument("--analytic-density", type=float, default=50.0,
                    help="injections per arcmin^2 per realization, analytic scene")
     p.add_argument("--demo-density", type=float, default=60.0, help="injections per arcmin^2 per realization, demo")
@@ -581,6 +696,10 @@ def main(argv=None) -> int:
         a.budgets, a.replicates, a.emcee_replicates = "1000,3000", 3, 2
         a.analytic_nsims, a.demo_nsims = 4, 4
     budgets = [int(b) for b in a.budgets.split(",")]
+    methods = ["binned", *(m for m in a.estimators.split(",") if m and m != "binned")]
+    unknown = [m for m in methods if m not in METHODS]
+    if unknown:
+        raise SystemExit(f"unknown estimator(s) {unknown}: choose among {list(METHODS)}")
     work = Path(a.work) if a.work else Path(tempfile.mkdtemp(prefix="speed_accuracy_"))
     work.mkdir(parents=True, exist_ok=True)
     out = Path(a.out)
@@ -589,12 +708,16 @@ def main(argv=None) -> int:
     report = {"command": " ".join([Path(sys.argv[0]).name, *(argv if argv is not None else sys.argv[1:])]),
               "machine": {"cpus": os.cpu_count(), "platform": platform.platform(), "python": platform.python_version()},
               "methods": {"binned": f"{BIN_WIDTH} mag bins, m50 by linear interpolation at the first 0.5 crossing",
-                          "map": "logistic model (per scene), MAP", "laplace": "same model, Laplace approximation",
+                          "map": "logistic model (per scene), MAP, averaged over the run's footprint cells",
+                          "laplace": "same model, Laplace approximation",
                           "emcee": "same model, emcee to ESS >= 1000",
                           "auto": "the default fit: fitting.fit_kind with --model auto (selection, then the chosen "
-                                  "model's importance-sampled posterior)"},
-              "definition": "f(m) is the completeness averaged over the injected positions; m50 is where it "
-                            "crosses 0.5; model curves are averaged over 200 injected positions per draw",
+                                  "model's importance-sampled posterior), given the run's outcome rows, mask and "
+                                  "fitting.shared_maps of its noise.fits and mask.fits, as the pipeline's fit stage"},
+              "estimators_run": methods,
+              "definition": "f(m) is the completeness averaged over the footprint; m50 is where it crosses 0.5; "
+                            "model curves are averaged over every unmasked pixel of the run's noise map and mask "
+                            "(the footprint cells a run's fit averages over), per draw",
               "scenes": {}}
     for scene in a.scenes.split(","):
         log(f"{scene}: building the injection pool in {work / scene}")
@@ -625,16 +748,28 @@ def main(argv=None) -> int:
         log(f"{scene}: pool of {n} injections ({int(held.sum())} held out) in {pool['wall']:.0f} s wall; per "
             "injection " + ", ".join(f"{k} {1e3 * v:.3f} ms" for k, v in pool["seconds_per_injection"].items())
             + "; reference m50: " + ", ".join(f"{k} {r['m50']:.3f}" for k, r in refs.items()))
-        results = evaluate(pool, refs, spec_name=sc["model"], budgets=budgets, max_replicates=a.replicates,
-                           seed=a.seed, emcee_max=a.emcee_replicates, log=log, exclude=held)
+        run_dir = work / f"{scene}_run"
+        maps = run_maps(run_dir, ["auto", sc["model"]])
+        trace_path = work / f"trace_{scene}.jsonl"
+        with open(trace_path, "w") as trace_file:
+            trace = lambda d: trace_file.write(json.dumps(d, default=float) + "\n")
+            results = evaluate(pool, refs, spec_name=sc["model"], budgets=budgets, max_replicates=a.replicates,
+                               seed=a.seed, emcee_max=a.emcee_replicates, log=log, maps=maps, methods=methods,
+                               exclude=held, trace=trace)
+        log(f"{scene}: per-replicate m50s and auto's selection tables in {trace_path}")
         report["scenes"][scene] = {
             "facts": sc["facts"], "model": sc["model"], "pool_injections": n, "held_out": int(held.sum()),
             "pool_wall_seconds": pool["wall"], "seconds_per_injection": pool["seconds_per_injection"],
             "mag_range": list(pool["mag_range"]), "primary_reference": primary,
+            "footprint": {"image_shape": list(maps["shape"]), "unmasked_pixels": int((~maps["mask"]).sum()),
+                          "shared_maps_cpu": maps["cpu"]},
             "references": {k: {**{kk: vv for kk, vv in r.items() if kk not in ("grid", "curve", "probes")},
                                "probe_levels": list(PROBE_LEVELS), "probe_mags": [float(v) for v in r["probes"]]}
                            for k, r in refs.items()},
             "results": results, "headline": {k: headline(v) for k, v in results.items()}}
+    earlier_path = out / "speed_accuracy.json"
+    if earlier_path.exists():
+        report = merge_earlier(report, json.loads(earlier_path.read_text()), methods)
     (out / "speed_accuracy.json").write_text(json.dumps(report, indent=1, default=float))
     chart(report, out / "speed_accuracy.png")
     log(f"wrote {out / 'speed_accuracy.json'} and {out / 'speed_accuracy.png'}")
