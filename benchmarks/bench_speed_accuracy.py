@@ -24,7 +24,7 @@ injections) four estimators of the completeness curve are compared:
     the pipeline's fit stage calls it: the subset's rows of the run's
     outcome table (every column), the image shape, the mask and the
     footprint histograms and noise grid of
-    :func:`comest_bayes.fitting.shared_maps` computed once from the run's
+    :func:`comest_bayes.bayes.fit.shared_maps` computed once from the run's
     ``noise.fits`` (the detection noise map) and ``mask.fits``.  This is
     the headline model.
 
@@ -218,12 +218,12 @@ def run_maps(run_dir: Path, requested) -> dict:
     The detection noise map (``noise.fits``: the detection's noise, which is
     also what the outcome table's ``noise`` column samples at each true
     position) and the mask (``mask.fits``), and
-    :func:`comest_bayes.fitting.shared_maps` of them for the ``requested``
+    :func:`comest_bayes.bayes.fit.shared_maps` of them for the ``requested``
     models: the footprint histograms and the noise grid that the pipeline
     computes once and passes to every ``fit_kind``.  ``cpu`` is the CPU
     seconds of that one pass, which a run spends once in its fit stage.
     """
-    from comest_bayes.fitting import shared_maps
+    from comest_bayes.bayes.fit import shared_maps
 
     noise = fits.getdata(run_dir / "noise.fits").astype(np.float32)
     mask = fits.getdata(run_dir / "mask.fits").astype(bool)
@@ -234,8 +234,8 @@ def run_maps(run_dir: Path, requested) -> dict:
 
 def _footprint_cells(maps: dict, spec, sigma_ref):
     """The footprint cells a run's fit of ``spec`` averages over (``fit_kind`` without footprint points)."""
-    from comest_bayes.fitting import footprint_grid
-    from comest_bayes.posterior import Footprint
+    from comest_bayes.bayes.fit import footprint_grid
+    from comest_bayes.bayes.posterior import Footprint
 
     hist = maps["shared"]["footprints"][footprint_grid(spec.uses_smooth)]
     return Footprint.from_histogram(hist, sigma_ref)
