@@ -269,7 +269,7 @@ def fit_completeness(outcomes, out=None, *, kind: str = "injections", model: str
         Folder (new or empty) for ``summary.json``, the posterior and a
         figure; by default nothing is kept on disk.
     kind, model, columns, image_shape, seed
-        As :func:`comest_bayes.bayes.fit.fit_outcome_file`.
+        As :func:`comest_bayes.pipeline.fits.fit_outcome_file`.
     noise_map, mask : str, Path or 2-D array, optional
         Detection noise and bad pixels (non-zero = bad) of the image: the
         image average then covers every unmasked pixel.
@@ -282,7 +282,7 @@ def fit_completeness(outcomes, out=None, *, kind: str = "injections", model: str
     """
     import numpy as np
 
-    from comest_bayes.bayes.fit import fit_outcome_file
+    from comest_bayes.pipeline.fits import fit_outcome_file
     from comest_bayes.io.run import model_facts
     from comest_bayes.bayes.posterior import CompletenessPosterior
 

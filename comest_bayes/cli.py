@@ -238,7 +238,7 @@ def _compute_from_args(args):
 
 
 def _cmd_fit(args, log) -> int:
-    from comest_bayes.bayes.fit import fit_outcome_file
+    from comest_bayes.pipeline.fits import fit_outcome_file
 
     shape = None
     if args.image_shape:

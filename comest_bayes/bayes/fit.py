@@ -8,7 +8,6 @@ entry's format: ``docs/ratios.md``; the fit itself: ``docs/bayesian.md``.
 
 from __future__ import annotations
 
-import math
 import time
 import warnings
 
@@ -20,16 +19,15 @@ from comest_bayes.bayes.checks import shape_check, shape_warning
 from comest_bayes.config import RunConfig
 from comest_bayes.errors import InputError
 from comest_bayes.bayes.inference import IdentifiabilityWarning, fit, fit_map
-from comest_bayes.io.jsonio import dumps
 from comest_bayes.bayes.model import CompletenessModel
 from comest_bayes.bayes.outcomes import compress_for, covariate_warnings, covariates_from_outcomes
 from comest_bayes.bayes.spec import load_spec, resolve_candidates
 from comest_bayes.bayes.posterior import (CompletenessPosterior, Footprint, FootprintHistogram, average_crossings, average_prob, coarse_noise_map, footprint_sample)
 from comest_bayes.seeding import int_seed_for, rng_for
 from comest_bayes.bayes.selection import choose_tau, select_model
-from comest_bayes.io import layout
 
-__all__ = ["fit_kind", "fit_task", "purity_outcomes", "warm_state", "MIN_OUTCOMES"]
+__all__ = ["fit_kind", "purity_outcomes", "warm_state", "shared_maps", "footprint_grid", "needs_smooth",
+           "MIN_OUTCOMES", "MIN_CLASS"]
 
 #: Fewer usable outcomes than this: the fit still runs but warns that the prior dominates.
 MIN_OUTCOMES = 20
@@ -100,55 +98,6 @@ def targeted_quantities(cells: Footprint, probes, lo: float, hi: float):
         f = average_prob(model, draws, np.asarray(probes, float), cells)
         return {"m50": cross[0.5], "m90": cross[0.9], "f_bright": f[:, 0], "f_faint": f[:, 1]}
     return fn
-
-
-def fit_task(task: dict) -> tuple:
-    """Run :func:`fit_kind` from file paths (a picklable task for the executors).
-
-    ``task`` holds ``run_dir``, ``kind``, ``quantity``, ``requested``, ``config``, ``image_shape``,
-    ``wcs_header``, ``mag_range``, ``mag_centers`` and optionally ``shared_maps``
-    (:func:`shared_maps`: what every fit of the run takes from the noise map and mask, computed
-    once).  Returns ``(posterior or None, entry)``; the posterior is returned without its compiled
-    model.
-    """
-    from pathlib import Path
-
-    from astropy.io import fits
-
-    c0 = time.process_time()
-    run = Path(task["run_dir"])
-    kind, quantity, config = task["kind"], task["quantity"], task["config"]
-    if quantity == "completeness":
-        table = Table.read(run / layout.catalog(kind, "outcomes"), mask_invalid=False)
-        outcome_column = "detected"
-    else:
-        table = purity_outcomes(Table.read(run / layout.catalog(kind, "matched"), mask_invalid=False),
-                                Table.read(run / layout.catalog(kind, "false"), mask_invalid=False),
-                                config.matching.mag_column)
-        outcome_column = "real"
-        nreal = int(np.sum(table["real"]))
-        nfalse = len(table) - nreal
-        if min(nreal, nfalse) < MIN_CLASS:
-            return None, {"name": None, "requested": task["requested"], "cpu_seconds": 0.0,
-                          "skipped": f"{nreal} real and {nfalse} false detections: a purity model needs at least "
-                                     f"{MIN_CLASS} of each; see the binned purity"}
-    shared = task.get("shared_maps") or {}
-    footprints, noise_grid = shared.get("footprints") or {}, shared.get("noise_grid")
-    # the noise map is only read when the run did not pass the footprint histogram this fit needs and the grid
-    have = footprint_grid(needs_smooth(task["requested"])) in footprints and noise_grid is not None
-    noise = None if have else fits.getdata(run / layout.NOISE).astype(np.float32)
-    mask = fits.getdata(run / layout.MASK).astype(bool)
-    with warnings.catch_warnings(record=True) as caught:
-        warnings.simplefilter("always")
-        post, entry = fit_kind(table, kind=kind, quantity=quantity, requested=task["requested"], config=config,
-                               image_shape=task["image_shape"], noise=noise, mask=mask,
-                               wcs_header=task["wcs_header"], mag_range=task["mag_range"],
-                               mag_centers=task["mag_centers"], outcome_column=outcome_column,
-                               footprints=footprints, noise_grid=noise_grid)
-    entry["warnings"] = sorted(set(entry.get("warnings", [])) | {str(w.message) for w in caught})
-    entry["cpu_seconds"] = round(time.process_time() - c0, 3)
-    post.use_model(None)  # the compiled model stays in this process
-    return post, entry
 
 
 def footprint_grid(smooth: bool) -> tuple[float, int]:
@@ -353,155 +302,3 @@ def fit_kind(outcomes: Table, *, kind: str, quantity: str, requested: str, confi
         "seconds": round(time.perf_counter() - t0, 2),
     }
     return post, entry
-
-
-# --------------------------------------------------------------------------- outcomes from elsewhere
-
-#: Default column names of an outcome table (this package's own ``catalogs/<kind>_outcomes.fits``).
-OUTCOME_COLUMNS = {"mag": "mag", "detected": "detected", "x": "x", "y": "y", "noise": "noise"}
-
-
-def _read_map(path, name: str) -> np.ndarray:
-    from astropy.io import fits
-
-    try:
-        with fits.open(path) as hdul:
-            for hdu in hdul:
-                if hdu.data is not None and getattr(hdu.data, "ndim", 0) == 2:
-                    return np.asarray(hdu.data)
-    except (OSError, ValueError, TypeError) as exc:
-        raise InputError(f"{name} {str(path)!r} cannot be read as FITS: {exc}") from None
-    raise InputError(f"{name} {str(path)!r} holds no 2-D image HDU.")
-
-
-def fit_outcome_file(path, out, *, kind: str = "injections", model: str = "auto", columns: dict | None = None,
-                     noise_map=None, mask=None, image_shape=None, seed: int = 0, mag_bin: float = 0.1,
-                     log=lambda s: None) -> dict:
-    """Fit the completeness model to an outcome table made by any injection pipeline.
-
-    Parameters
-    ----------
-    path : str or Path
-        FITS (or any format astropy's Table reads) with one row per
-        injection: true magnitude, detected (bool or 0/1) and optionally
-        pixel position and the local detection noise.
-    out : str or Path
-        Output folder: new or empty.  Receives ``posterior/<kind>_completeness.npz``,
-        ``summary.json`` (``kinds.<kind>.model`` and the binned completeness)
-        and ``figures/<kind>_completeness.png``.
-    kind : str
-        Label of the injected population.
-    model : str
-        A spec name or path, or ``auto`` (the selection).
-    columns : dict, optional
-        Column names for ``mag``, ``detected``, ``x``, ``y``, ``noise``
-        (defaults :data:`OUTCOME_COLUMNS`); ``x``, ``y`` and ``noise`` may be
-        absent from the table.
-    noise_map, mask : str or Path, optional
-        FITS maps of the detection noise and bad pixels (non-zero = bad) of
-        the image: the image average then runs over every unmasked pixel.
-        Without them it runs over the injections' own positions and noise
-        values (the footprint as the injections sampled it).
-    image_shape : (ny, nx), optional
-        Needed with positions but without a noise map or mask (default:
-        from the maps, else the largest position + 1).
-    seed : int
-        Root seed of the fit.
-
-    Returns
-    -------
-    dict
-        The summary written to ``summary.json``.
-    """
-    from pathlib import Path
-
-    from comest_bayes.config import FitConfig
-    from comest_bayes.io.rundir import atomic_path
-
-    path, out = Path(path), Path(out)
-    cols = dict(OUTCOME_COLUMNS, **(columns or {}))
-    # -- validate everything before writing anything
-    if not path.is_file():
-        raise InputError(f"outcome table {str(path)!r} does not exist.")
-    try:
-        raw = Table.read(path)
-    except Exception as exc:  # astropy raises many types for unreadable tables
-        raise InputError(f"outcome table {str(path)!r} cannot be read: {exc}") from None
-    missing = [cols[c] for c in ("mag", "detected") if cols[c] not in raw.colnames]
-    if missing:
-        raise InputError(f"outcome table {str(path)!r} has no column(s) {missing}; its columns are {raw.colnames}. "
-                         "Name yours with --mag-column / --detected-column.")
-    if len(raw) == 0:
-        raise InputError(f"outcome table {str(path)!r} has no rows.")
-    if out.exists() and (not out.is_dir() or any(out.iterdir())):
-        raise InputError(f"output folder {str(out)!r} exists and is not empty; give a new or empty folder "
-                         "(nothing is overwritten).")
-    load_spec(model)
-    table = Table({"mag": np.asarray(raw[cols["mag"]], float), "detected": np.asarray(raw[cols["detected"]])})
-    has_xy = cols["x"] in raw.colnames and cols["y"] in raw.colnames
-    if has_xy:
-        table["x"] = np.asarray(raw[cols["x"]], float)
-        table["y"] = np.asarray(raw[cols["y"]], float)
-    if cols["noise"] in raw.colnames:
-        table["noise"] = np.asarray(raw[cols["noise"]], float)
-    noise = None if noise_map is None else _read_map(noise_map, "noise map").astype(np.float32)
-    bad = None if mask is None else _read_map(mask, "mask") != 0
-    if noise is not None and bad is not None and noise.shape != bad.shape:
-        raise InputError(f"noise map {noise.shape} and mask {bad.shape} differ in shape.")
-    shape = None
-    for arr in (noise, bad):
-        if arr is not None:
-            shape = arr.shape
-    if image_shape is not None:
-        if shape is not None and tuple(image_shape) != tuple(shape):
-            raise InputError(f"--image-shape {tuple(image_shape)} differs from the maps' shape {shape}.")
-        shape = tuple(int(v) for v in image_shape)
-    if shape is None and has_xy:
-        shape = (int(np.nanmax(table["y"])) + 2, int(np.nanmax(table["x"])) + 2)
-    if shape is None:
-        shape = (2, 2)  # no positions: the image plays no role
-    config = RunConfig(seed=int(seed), fit=FitConfig(model=model))
-    try:
-        out.mkdir(parents=True, exist_ok=True)
-    except OSError as exc:
-        raise InputError(f"output folder {str(out)!r} cannot be created: {exc}") from None
-
-    # -- fit
-    mags = np.asarray(table["mag"], float)
-    good = np.isfinite(mags)
-    lo = math.floor(np.min(mags[good]) / mag_bin) * mag_bin
-    hi = math.ceil(np.max(mags[good]) / mag_bin) * mag_bin
-    edges = R.magnitude_edges(lo, hi, mag_bin)
-    centers = 0.5 * (edges[:-1] + edges[1:])
-    if bad is None:
-        bad = np.zeros(shape, bool)
-    if noise is None and "noise" in table.colnames and has_xy:
-        footprint = "injections"  # the injections' own positions sample the footprint
-    else:
-        footprint = "maps" if noise is not None or mask is not None else "uniform"
-    where = {"maps": "every unmasked pixel of the maps", "injections": "the injections' positions and noise",
-             "uniform": "a uniform footprint"}[footprint]
-    log(f"fit: {len(table)} outcomes of {kind} from {path.name}; model {model}; image average over {where}")
-    points = (table["x"], table["y"], table["noise"]) if footprint == "injections" else None
-    post, entry = fit_kind(table, kind=kind, quantity="completeness", requested=model, config=config,
-                           image_shape=shape, noise=noise if noise is not None else np.ones(shape, np.float32),
-                           mask=bad, wcs_header=None, mag_range=(lo, hi), mag_centers=centers,
-                           footprint_points=points, log=log)
-    binned = R.completeness(mags, np.asarray(table["detected"]).astype(bool), edges)
-    (out / layout.POSTERIOR_DIR).mkdir(exist_ok=True)
-    post.save(out / layout.posterior(kind))
-    entry["posterior_file"] = layout.posterior(kind)
-    entry["footprint"] = footprint
-    summary = {"source": str(path), "kinds": {kind: {"completeness": binned.to_dict(), "model": entry}}}
-    from comest_bayes.report.plots import save_figure
-    from comest_bayes.report.plots.completeness import ratio_curve
-    from comest_bayes.report.plots.data import BinnedCurve, PosteriorBand
-
-    ax = ratio_curve(BinnedCurve(binned.centers, binned.ratio, binned.lower, binned.upper, binned.n),
-                     posterior=PosteriorBand.from_dict(entry["curve"], label=entry["name"]))
-    ax.set_title(f"{kind}: {len(table)} injections from {path.name}")
-    (out / layout.FIGURES_DIR).mkdir(exist_ok=True)
-    save_figure(ax.figure, out / layout.FIGURES_DIR / f"{kind}_completeness")
-    with atomic_path(out / layout.SUMMARY) as tmp:
-        tmp.write_text(dumps(summary, indent=2, fallback=str) + "\n")
-    return summary

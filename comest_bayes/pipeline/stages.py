@@ -847,7 +847,8 @@ def _fit_stages(run: RunDirectory, image: ImageData, det: DetectionResult, confi
     """
     cpu = {} if cpu is None else cpu
     from comest_bayes.pipeline.executors import run_tasks
-    from comest_bayes.bayes.fit import fit_task, shared_maps
+    from comest_bayes.bayes.fit import shared_maps
+    from comest_bayes.pipeline.fits import fit_task
     from comest_bayes.pipeline.progress import FitProgress, describe_fit
     from comest_bayes.io.rundir import atomic_path
 

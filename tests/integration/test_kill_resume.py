@@ -30,7 +30,8 @@ from pathlib import Path
 
 case, marker, args = sys.argv[1], Path(sys.argv[2]), sys.argv[3:]
 
-from comest_bayes.bayes import fit as fitting, posterior
+from comest_bayes.bayes import posterior
+from comest_bayes.pipeline import fits as fitting
 from comest_bayes.io import rundir
 
 def hang():

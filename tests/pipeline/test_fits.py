@@ -1,0 +1,61 @@
+"""The fits around the numerics (comest_bayes.pipeline.fits): the fit stage's worker task reading a run
+directory, and ``comest-bayes fit`` on an outcome table with known truth (the CLI itself: tests/test_cli.py)."""
+
+import json
+
+import numpy as np
+import pytest
+from astropy.table import Table
+
+from comest_bayes.config import load_config
+from comest_bayes.io import layout
+from comest_bayes.pipeline.fits import OUTCOME_COLUMNS, fit_outcome_file, fit_task
+
+
+def _logistic_outcomes(n=3000, seed=3, m50=24.0, w=0.25):
+    rng = np.random.default_rng(seed)
+    mag = rng.uniform(21.0, 27.0, n)
+    return Table({"mag": mag, "detected": rng.uniform(size=n) < 1.0 / (1.0 + np.exp((mag - m50) / w)),
+                  "x": rng.uniform(0, 199, n), "y": rng.uniform(0, 99, n), "noise": np.ones(n)})
+
+
+def test_an_outcome_file_is_fitted_and_every_product_is_written(tmp_path):
+    path = tmp_path / "outcomes.fits"
+    _logistic_outcomes().write(path)
+    assert set(OUTCOME_COLUMNS) == {"mag", "detected", "x", "y", "noise"}
+    summary = fit_outcome_file(path, tmp_path / "out", kind="stars", model="logistic", image_shape=(100, 200),
+                               noise_map=None, mask=None, seed=1)
+    entry = summary["kinds"]["stars"]["model"]
+    # truth 24.0; 3000 outcomes on a 0.25-mag logistic give a posterior sd of ~0.012 mag: within 4 sd
+    sd = 0.5 * (entry["m50"]["hi68"] - entry["m50"]["lo68"])
+    assert 0.004 < sd < 0.03 and abs(entry["m50"]["median"] - 24.0) < 4 * sd
+    out = tmp_path / "out"
+    assert json.loads((out / layout.SUMMARY).read_text())["kinds"]["stars"]["model"]["name"] == "logistic"
+    assert (out / layout.posterior("stars")).is_file() and entry["posterior_file"] == layout.posterior("stars")
+    assert (out / layout.FIGURES_DIR / "stars_completeness.png").is_file()
+    binned = summary["kinds"]["stars"]["completeness"]
+    assert sum(binned["n"]) == 3000
+
+
+def test_the_worker_task_skips_a_purity_fit_with_too_few_false_detections(tmp_path):
+    # a run directory holding only what the purity task reads: matched pairs and 3 false detections
+    (tmp_path / layout.CATALOG_DIR).mkdir()
+    rng = np.random.default_rng(0)
+    Table({"det_mag_auto": rng.uniform(20, 25, 40), "det_xwin": rng.uniform(0, 99, 40),
+           "det_ywin": rng.uniform(0, 99, 40)}).write(tmp_path / layout.catalog("point", "matched"))
+    Table({"mag_auto": [24.0, 24.5, 25.0], "xwin": [1.0, 2.0, 3.0],
+           "ywin": [1.0, 2.0, 3.0]}).write(tmp_path / layout.catalog("point", "false"))
+    post, entry = fit_task({"run_dir": str(tmp_path), "kind": "point", "quantity": "purity", "requested": "purity",
+                            "config": load_config(), "image_shape": (100, 100), "wcs_header": None,
+                            "mag_range": (20.0, 25.0), "mag_centers": np.arange(20.05, 25.0, 0.1)})
+    assert post is None and entry["name"] is None
+    assert entry["skipped"].startswith("40 real and 3 false detections: a purity model needs at least 25 of each")
+
+
+def test_a_map_that_is_no_image_is_refused(tmp_path):
+    path = tmp_path / "outcomes.fits"
+    _logistic_outcomes(200).write(path)
+    Table({"a": [1.0]}).write(tmp_path / "table.fits")
+    with pytest.raises(Exception, match="holds no 2-D image HDU"):
+        fit_outcome_file(path, tmp_path / "out", model="logistic", noise_map=tmp_path / "table.fits",
+                         image_shape=(100, 200))
