@@ -46,7 +46,7 @@ import numpy as np
 from scipy.special import logsumexp
 
 from .errors import InputError
-from .inference import FitResult, InferenceWarning, fit
+from .inference import FitResult, InferenceWarning, fit, log_prob_rows
 from .seeding import int_seed_for
 
 __all__ = ["LooWarning", "LooResult", "SelectionResult", "loo_grouped", "compare_loo", "select_model",
@@ -507,7 +507,7 @@ def _laplace_draws(model, lap, *, seed: int, ndraws: int):
     z = rng.standard_normal((ndraws, lap.mean.size))
     draws = lap.mean + z @ chol.T
     log_q = -0.5 * np.sum(z * z, axis=1)
-    log_p = np.asarray(model.log_prob_batch(draws), float)
+    log_p = log_prob_rows(model, draws)  # in the importance sampler's blocks: one compiled shape
     lw = np.where(np.isfinite(log_p), log_p - log_q, -np.inf)
     return draws, lw, rng
 
