@@ -45,7 +45,7 @@ from .posterior import (CompletenessPosterior, Footprint, FootprintHistogram, av
 from .seeding import int_seed_for, rng_for
 from .selection import choose_tau, select_model
 
-__all__ = ["fit_kind", "fit_task", "purity_outcomes", "warm_state", "MIN_OUTCOMES"]
+__all__ = ["fit_kind", "fit_task", "fit_tasks", "purity_outcomes", "warm_state", "MIN_OUTCOMES"]
 
 #: Fewer usable outcomes than this: the fit still runs but warns that the prior dominates.
 MIN_OUTCOMES = 20
@@ -165,6 +165,17 @@ def fit_task(task: dict) -> tuple:
     entry["cpu_seconds"] = round(time.process_time() - c0, 3)
     post._model = None
     return post, entry
+
+
+def fit_tasks(tasks: list) -> list:
+    """:func:`fit_task` of each task in turn, in this one process: a list of their results.
+
+    A worker process traces (and compiles, or loads from the compilation cache) the programs of a
+    model layout once, at its first fit; fits that share the layout (the completeness of every kind
+    of a run) therefore cost less CPU in one worker than in several (on the demo about 1.4 CPU-s of
+    a 3 CPU-s fit is that first trace).
+    """
+    return [fit_task(task) for task in tasks]
 
 
 def footprint_grid(smooth: bool) -> tuple[float, int]:
