@@ -256,17 +256,20 @@ class FootprintHistogram:
         cnt, sl, su, sv = (np.zeros(size) for _ in range(4))
         rows = max(1, FOOTPRINT_CHUNK // max(nx, 1))
         for j0 in range(0, ny, rows):
-            good = good_px[j0:j0 + rows]
-            jj, ii = np.nonzero(good)
-            jj = jj + j0
-            level = np.zeros(jj.size)
-            key = np.full(jj.size, nl - 1, dtype=np.int64)
+            # flat indices of the block's good pixels (one pass, where a 2-D nonzero makes two index arrays)
+            flat = np.flatnonzero(good_px[j0:j0 + rows])
+            jj, ii = np.divmod(flat, nx)
+            jj += j0
             if has_noise:
-                sig = noise[j0:j0 + rows][good].astype(np.float64)
-                ok = np.isfinite(sig) & (sig > 0)
-                level[ok] = -2.5 * np.log10(sig[ok])
+                sig = noise[j0:j0 + rows].reshape(-1)[flat].astype(np.float64)
+                ok = valid_px[j0:j0 + rows].reshape(-1)[flat]
+                with np.errstate(invalid="ignore", divide="ignore"):
+                    level = np.where(ok, -2.5 * np.log10(sig), 0.0)
                 # clipped: the extremes above may differ from the per-pixel values by a rounding error
-                key[ok] = np.clip(np.floor((level[ok] - lmin) / ddepth).astype(np.int64), 0, nl - 2)
+                key = np.where(ok, np.clip(np.floor((level - lmin) / ddepth), 0, nl - 2), nl - 1).astype(np.int64)
+            else:
+                level = np.zeros(flat.size)
+                key = np.full(flat.size, nl - 1, dtype=np.int64)
             if nuv > 1:
                 key = (key * nuv + np.minimum(ii * nuv // nx, nuv - 1)) * nuv + np.minimum(jj * nuv // ny, nuv - 1)
             cnt += np.bincount(key, minlength=size)
@@ -431,9 +434,15 @@ def coarse_noise_map(noise: np.ndarray, mask: np.ndarray, step: int = 32) -> np.
         good = ~np.asarray(mask, bool) & np.isfinite(noise) & (noise > 0)
     padded[:ny, :nx] = np.where(good, noise, np.nan)
     blocks = padded.reshape(gy, step, gx, step).transpose(0, 2, 1, 3).reshape(gy, gx, step * step)
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore", RuntimeWarning)  # all-NaN blocks (fully masked) give NaN, as documented
-        return np.nanmedian(blocks, axis=-1).astype(np.float64)
+    # nanmedian by one sort (NaN sorts last): the mean of the middle good values, in the map's float32 as
+    # np.nanmedian computes it (identical values; np.nanmedian loops over the blocks and took 3x as long)
+    s = np.sort(blocks, axis=-1)
+    n = np.count_nonzero(~np.isnan(s), axis=-1)
+    lo = np.take_along_axis(s, np.maximum((n - 1) // 2, 0)[..., None], -1)[..., 0]
+    hi = np.take_along_axis(s, np.minimum(n // 2, s.shape[-1] - 1)[..., None], -1)[..., 0]
+    out = ((lo + hi) / np.float32(2)).astype(np.float64)
+    out[n == 0] = np.nan  # a fully masked block
+    return out
 
 
 def footprint_sample(mask: np.ndarray, n: int, rng: np.random.Generator) -> np.ndarray:
