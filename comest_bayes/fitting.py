@@ -175,7 +175,26 @@ def fit_tasks(tasks: list) -> list:
     of a run) therefore cost less CPU in one worker than in several (on the demo about 1.4 CPU-s of
     a 3 CPU-s fit is that first trace).
     """
-    return [fit_task(task) for task in tasks]
+    results = []
+    for task in tasks:
+        try:
+            results.append(fit_task(task))
+        except Exception as exc:
+            # the fits done before it are returned with the error (the caller records them, then raises it):
+            # a failing fit must not take its group's finished fits with it
+            import traceback
+
+            exc.add_note("".join(traceback.format_exception(exc)).rstrip())
+            results.append(FitFailure(exc))
+            break
+    return results
+
+
+class FitFailure:
+    """What :func:`fit_tasks` returns in place of a fit that raised: the exception, to raise in the caller."""
+
+    def __init__(self, exc: BaseException):
+        self.exc = exc
 
 
 def footprint_grid(smooth: bool) -> tuple[float, int]:

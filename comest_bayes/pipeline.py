@@ -843,7 +843,7 @@ def _fit_stages(run: RunDirectory, image: ImageData, det: DetectionResult, confi
     """
     cpu = {} if cpu is None else cpu
     from .executors import run_tasks
-    from .fitting import fit_task, fit_tasks, shared_maps
+    from .fitting import FitFailure, fit_task, fit_tasks, shared_maps
     from .progress import FitProgress, describe_fit
     from .rundir import atomic_path
 
@@ -937,6 +937,8 @@ def _fit_stages(run: RunDirectory, image: ImageData, det: DetectionResult, confi
 
     def on_group(group, results):
         for task, result in zip(group, results):
+            if isinstance(result, FitFailure):
+                raise result.exc
             on_result(task, result)
 
     progress.start()

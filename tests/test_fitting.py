@@ -204,3 +204,18 @@ def test_a_warm_refit_equals_a_cold_fit_of_the_same_model():
         assert abs(e_hot["m50"][key] - e_cold["m50"][key]) < 0.15 * sd, (key, e_hot["m50"], e_cold["m50"])
     with pytest.raises(InputError, match="warm refit needs one model"):
         _fit(more, noise_map, "auto", warm=warm)
+
+
+def test_fit_tasks_returns_the_fits_before_a_failure_with_it(monkeypatch):
+    from comest_bayes import fitting
+
+    def fake(task):
+        if task == "bad":
+            raise ValueError("this fit fails")
+        return task.upper()
+
+    monkeypatch.setattr(fitting, "fit_task", fake)
+    assert fitting.fit_tasks(["a", "b"]) == ["A", "B"]
+    out = fitting.fit_tasks(["a", "bad", "c"])  # the one after the failure is not run
+    assert out[0] == "A" and len(out) == 2 and isinstance(out[1], fitting.FitFailure)
+    assert "this fit fails" in str(out[1].exc) and "Traceback" in out[1].exc.__notes__[0]
