@@ -948,7 +948,7 @@ def _fit_stages(run: RunDirectory, image: ImageData, det: DetectionResult, confi
                       scheduler=compute.scheduler, progress=compute.progress, desc="fits", runner=compute.runner)
         else:
             run_tasks(fit_tasks, groups, on_result=on_group, executor=compute.executor, workers=compute.workers,
-                      scheduler=compute.scheduler, progress=compute.progress, desc="fits", runner=compute.runner)
+                      scheduler=compute.scheduler, progress=compute.progress, desc="fit groups", runner=compute.runner)
     finally:
         progress.stop()
     return len(tasks)
