@@ -1,13 +1,17 @@
-"""JAX in double precision (comest_bayes.jaxnum): importing it, or a module that needs float64, switches JAX
-to 64-bit; the front door does not.  Each case runs in a fresh Python, since the switch is per process."""
+"""comest_bayes.jaxnum: importing it, or a module that needs float64, switches JAX to 64-bit (the front door
+does not; each such case runs in a fresh Python, since the switch is per process); stored_jit traces a
+program once, stores it with jax.export, and later processes load it with the same numbers."""
 
 import json
 import os
 import subprocess
 import sys
 
+import numpy as np
 import pytest
 
+from comest_bayes import jaxnum
+from comest_bayes.jaxnum import jax, jnp, stored_jit
 from conftest import REPO_ROOT
 
 CODE = """
@@ -37,3 +41,52 @@ def _run(before: str) -> dict:
 ])
 def test_double_precision_is_switched_on_by_the_modules_that_need_it(before, dtype):
     assert _run(before)["dtype"] == dtype
+
+
+# --------------------------------------------------------------------------- stored_jit
+
+def _counting(counter):
+    def f(st, x, pair):
+        counter["traces"] += 1  # runs at trace time only
+        a, b = pair
+        return jnp.sum(jnp.exp(-st * x) * a) + jnp.log1p(b)
+
+    return f
+
+
+def test_stored_jit_loads_the_stored_program_without_tracing_and_gives_the_same_numbers(tmp_path, monkeypatch):
+    x = np.linspace(0.0, 1.0, 7)
+    pair = (np.arange(7.0), jnp.asarray(0.5))
+    counter = {"traces": 0}
+    plain = jax.jit(_counting({"traces": 0}), static_argnums=0)(2.0, x, pair)
+    # without a compilation cache folder it is jax.jit
+    monkeypatch.setattr(jaxnum, "export_folder", lambda: None)
+    assert float(stored_jit(_counting(counter), 0, sources=[__file__])(2.0, x, pair)) == float(plain)
+    assert counter["traces"] == 1
+    assert not (tmp_path / "exports").exists()
+    # with one: the first instance (a process) traces and stores, a second one only loads
+    monkeypatch.setattr(jaxnum, "export_folder", lambda: tmp_path / "exports")
+    first = stored_jit(_counting(counter), 0, sources=[__file__], name="f")
+    assert float(first(2.0, x, pair)) == float(plain)
+    assert counter["traces"] == 2
+    assert len(list((tmp_path / "exports").glob("f-*.jaxexport"))) == 1
+    second = stored_jit(_counting(counter), 0, sources=[__file__], name="f")
+    assert float(second(2.0, x, pair)) == float(plain)
+    assert counter["traces"] == 2  # loaded, not traced
+    # another static value or shape is another program
+    assert float(second(3.0, x, pair)) == float(jax.jit(_counting({"traces": 0}), static_argnums=0)(3.0, x, pair))
+    second(2.0, x[:5], (pair[0][:5], pair[1]))
+    assert counter["traces"] == 4
+    assert len(list((tmp_path / "exports").glob("f-*.jaxexport"))) == 3
+
+
+def test_stored_jit_does_not_load_a_program_of_other_sources(tmp_path, monkeypatch):
+    monkeypatch.setattr(jaxnum, "export_folder", lambda: tmp_path / "exports")
+    src = tmp_path / "model.py"
+    src.write_text("version 1")
+    counter = {"traces": 0}
+    x, pair = np.ones(3), (np.ones(3), jnp.asarray(0.0))
+    stored_jit(_counting(counter), 0, sources=[src], name="g")(1.0, x, pair)
+    src.write_text("version 2")  # the traced code changed: its old program must not be used
+    stored_jit(_counting(counter), 0, sources=[src], name="g")(1.0, x, pair)
+    assert counter["traces"] == 2

@@ -252,8 +252,29 @@ def _objective(model):
 
 
 def _finite_log_prob(model, theta) -> float:
-    value = float(model.log_prob(np.asarray(theta, dtype=np.float64)))
+    # through value_and_grad, which the optimizer compiles anyway: a separate log_prob program would cost
+    # one more trace and compile per process for a handful of calls
+    value = float(model.value_and_grad(np.asarray(theta, dtype=np.float64))[0])
     return value if math.isfinite(value) else -math.inf
+
+
+#: Rows per call of ``model.log_prob_batch`` from the importance sampler and the selection's Laplace
+#: draws: every call has this one shape (one compiled program), whatever the number of draws.
+LOG_PROB_BLOCK = 256
+
+
+def log_prob_rows(model, thetas) -> np.ndarray:
+    """``model.log_prob_batch`` in calls of exactly :data:`LOG_PROB_BLOCK` rows (the last padded)."""
+    thetas = np.asarray(thetas, dtype=np.float64)
+    n = thetas.shape[0]
+    out = np.empty(n)
+    for start in range(0, n, LOG_PROB_BLOCK):
+        block = thetas[start:start + LOG_PROB_BLOCK]
+        nb = block.shape[0]
+        if nb < LOG_PROB_BLOCK:
+            block = np.concatenate([block, np.repeat(block[-1:], LOG_PROB_BLOCK - nb, axis=0)])
+        out[start:start + nb] = np.asarray(model.log_prob_batch(block), dtype=np.float64)[:nb]
+    return out
 
 
 def _width_check(model, theta, w_min: float) -> str | None:
@@ -780,7 +801,7 @@ def _t_draws(model, mean, cov, df, ndraws, rng):
     draws = mean + (z @ chol.T) * scale[:, None]
     # log density of the t proposal up to its constant (which cancels on normalising)
     log_q = -0.5 * (df + d) * np.log1p(np.sum(z * z, axis=1) * scale ** 2 / df)
-    log_p = np.array(model.log_prob_batch(draws), dtype=np.float64)
+    log_p = log_prob_rows(model, draws)
     log_p[~np.isfinite(log_p)] = -np.inf
     return draws, log_p, log_p - log_q
 

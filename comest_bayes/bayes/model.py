@@ -14,10 +14,11 @@ import warnings
 from dataclasses import dataclass
 from typing import Mapping, NamedTuple
 import numpy as np
-from comest_bayes.jaxnum import jax, jnp
+from comest_bayes.jaxnum import jax, jnp, stored_jit
 from scipy import special as _sp
 from comest_bayes.errors import ConfigError, InputError
 from comest_bayes.bayes.spec import ModelSpec, load_spec
+from comest_bayes.bayes import links as _links, shapes as _shapes
 from comest_bayes.bayes.shapes import SPLINE_H, SPLINE_T0, full_eta, monotone_spline, richards_logs
 from comest_bayes.bayes.bases import smooth_basis, smooth_basis_names
 from comest_bayes.bayes.links import Z_CLIP, safe_logaddexp, softplus, link_logs, logistic_mixture_logs, mixture_logs
@@ -234,20 +235,23 @@ def _cell_grads(st, theta, m, depth, size, basis):
     return jax.jacfwd(logs)(theta), logs(theta)
 
 
-_jit_average_batch = jax.jit(_average_batch, static_argnums=0)
-_jit_average_at_batch = jax.jit(_average_at_batch, static_argnums=0)
-_jit_cell_grads = jax.jit(_cell_grads, static_argnums=0)
-_jit_log_prob = jax.jit(_log_prob, static_argnums=0)
+# stored_jit: jax.jit whose traced programs later processes load from disk (comest_bayes.jaxnum); the
+# stored programs are keyed on a digest of every file whose code they trace
+_SOURCES = (__file__, _links.__file__, _shapes.__file__)
+_jit_average_batch = stored_jit(_average_batch, 0, sources=_SOURCES)
+_jit_average_at_batch = stored_jit(_average_at_batch, 0, sources=_SOURCES)
+_jit_cell_grads = stored_jit(_cell_grads, 0, sources=_SOURCES)
+_jit_log_prob = stored_jit(_log_prob, 0, sources=_SOURCES)
 _jit_log_prior = jax.jit(lambda st, theta, prior: jnp.where(_in_box(theta), _sanitize(_log_prior(st, theta, prior)),
                                                             -jnp.inf), static_argnums=0)
 _jit_log_likelihood = jax.jit(
     lambda st, theta, data: jnp.where(_in_box(theta), _sanitize(_log_likelihood(st, theta, data)), -jnp.inf),
     static_argnums=0)
-_jit_value_and_grad = jax.jit(_value_and_grad, static_argnums=0)
-_jit_log_prob_batch = jax.jit(_log_prob_batch, static_argnums=(0, 4))
-_jit_hessian = jax.jit(jax.hessian(_log_prob, argnums=1), static_argnums=0)
-_jit_cell_logs_batch = jax.jit(_cell_logs_batch, static_argnums=0)
-_jit_prob_m50_batch = jax.jit(_prob_m50_batch, static_argnums=0)
+_jit_value_and_grad = stored_jit(_value_and_grad, 0, sources=_SOURCES)
+_jit_log_prob_batch = stored_jit(_log_prob_batch, (0, 4), sources=_SOURCES)
+_jit_hessian = stored_jit(jax.hessian(_log_prob, argnums=1), 0, sources=_SOURCES, name="_hessian")
+_jit_cell_logs_batch = stored_jit(_cell_logs_batch, 0, sources=_SOURCES)
+_jit_prob_m50_batch = stored_jit(_prob_m50_batch, 0, sources=_SOURCES)
 
 #: log_prob_batch vectorises over at most this many (walker, cell) pairs at once.
 BATCH_ELEMENTS = 1 << 20

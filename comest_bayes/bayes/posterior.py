@@ -30,6 +30,12 @@ __all__ = ["CompletenessPosterior", "Footprint", "FootprintHistogram", "Extrapol
 #: Largest number of (draw, position, magnitude) values evaluated at once by image averages.
 AVERAGE_ELEMENTS = 4_000_000
 
+#: (Draw, magnitude) pairs per call of the footprint averages: every call has this one shape.
+AVERAGE_ROWS = 256
+
+#: Draws whose whole grid brackets the crossings of :func:`average_crossings`.
+PILOT_DRAWS = 16
+
 #: Pixels per block of rows that :meth:`Footprint.from_maps` groups at a time (bounds its memory).
 FOOTPRINT_CHUNK = 1 << 20
 
@@ -230,17 +236,20 @@ class FootprintHistogram:
         cnt, sl, su, sv = (np.zeros(size) for _ in range(4))
         rows = max(1, FOOTPRINT_CHUNK // max(nx, 1))
         for j0 in range(0, ny, rows):
-            good = good_px[j0:j0 + rows]
-            jj, ii = np.nonzero(good)
-            jj = jj + j0
-            level = np.zeros(jj.size)
-            key = np.full(jj.size, nl - 1, dtype=np.int64)
+            # flat indices of the block's good pixels (one pass, where a 2-D nonzero makes two index arrays)
+            flat = np.flatnonzero(good_px[j0:j0 + rows])
+            jj, ii = np.divmod(flat, nx)
+            jj += j0
             if has_noise:
-                sig = noise[j0:j0 + rows][good].astype(np.float64)
-                ok = np.isfinite(sig) & (sig > 0)
-                level[ok] = -2.5 * np.log10(sig[ok])
+                sig = noise[j0:j0 + rows].reshape(-1)[flat].astype(np.float64)
+                ok = valid_px[j0:j0 + rows].reshape(-1)[flat]
+                with np.errstate(invalid="ignore", divide="ignore"):
+                    level = np.where(ok, -2.5 * np.log10(sig), 0.0)
                 # clipped: the extremes above may differ from the per-pixel values by a rounding error
-                key[ok] = np.clip(np.floor((level[ok] - lmin) / ddepth).astype(np.int64), 0, nl - 2)
+                key = np.where(ok, np.clip(np.floor((level - lmin) / ddepth), 0, nl - 2), nl - 1).astype(np.int64)
+            else:
+                level = np.zeros(flat.size)
+                key = np.full(flat.size, nl - 1, dtype=np.int64)
             if nuv > 1:
                 key = (key * nuv + np.minimum(ii * nuv // nx, nuv - 1)) * nuv + np.minimum(jj * nuv // ny, nuv - 1)
             cnt += np.bincount(key, minlength=size)
@@ -254,24 +263,64 @@ class FootprintHistogram:
                    block=used % (nuv * nuv), npix=npix, has_noise=has_noise, ddepth=float(ddepth), nuv=nuv)
 
 
+def _average_pairs(model, thetas: np.ndarray, mags: np.ndarray, footprint: Footprint) -> np.ndarray:
+    """Footprint average of f for each (draw, magnitude) pair (rows of ``thetas`` with ``mags``): shape (N,).
+
+    Evaluated in calls of exactly :data:`AVERAGE_ROWS` pairs (the last one padded), so that every
+    footprint average of a process runs through one compiled program whatever the number of draws
+    and magnitudes (each new shape costs a trace and a compile, or a cache load, of about 0.1 s).
+    """
+    n = len(thetas)
+    out = np.empty(n)
+    args = (footprint.depth, footprint.u, footprint.v, footprint.weight)
+    rows = AVERAGE_ROWS
+    for start in range(0, n, rows):
+        th, mg = thetas[start:start + rows], mags[start:start + rows]
+        nb = len(th)
+        if nb < rows:
+            th = np.concatenate([th, np.repeat(th[-1:], rows - nb, axis=0)])
+            mg = np.concatenate([mg, np.full(rows - nb, mg[-1])])
+        out[start:start + nb] = model.average_prob_at(th, mg, *args)[:nb]
+    return out
+
+
+def _distinct(thetas: np.ndarray):
+    """The distinct rows of ``thetas`` and the index of each row among them (resampled draws repeat)."""
+    uniq, inverse = np.unique(thetas, axis=0, return_inverse=True)
+    return uniq, np.asarray(inverse).reshape(-1)
+
+
 def average_prob(model, thetas: np.ndarray, mags, footprint: Footprint) -> np.ndarray:
     """Footprint average of f per draw: shape (S, M), exact over the footprint's cells.
 
     ``model`` is a :class:`~comest_bayes.bayes.model.CompletenessModel` and
-    ``thetas`` its free parameters, shape (S, D) or (D,).
+    ``thetas`` its free parameters, shape (S, D) or (D,).  Identical draws
+    (importance-sampled posteriors repeat draws) are evaluated once.
     """
-    return model.average_prob(np.atleast_2d(np.asarray(thetas, float)), mags, footprint.depth, footprint.u,
-                              footprint.v, footprint.weight)
+    thetas = np.atleast_2d(np.asarray(thetas, float))
+    mags = np.atleast_1d(np.asarray(mags, float))
+    uniq, inverse = _distinct(thetas)
+    u, m = len(uniq), mags.size
+    f = _average_pairs(model, np.repeat(uniq, m, axis=0), np.tile(mags, u), footprint).reshape(u, m)
+    return f[inverse]
 
 
 def average_crossings(model, thetas, footprint: Footprint, levels, lo: float, hi: float, *,
                       xtol: float = 1e-4) -> dict:
     """Per draw, the magnitudes where the image-average f falls to each level.
 
-    A 0.25-mag grid over ``[lo - 1, hi + 1]`` brackets every draw's first
-    crossing (the image-average curve is monotone); the Illinois variant of
-    regula falsi then refines each bracket with exact footprint averages to
-    ``xtol`` mag (default 1e-4, a tenth or less of any posterior sd).
+    The first crossing on a 0.25-mag grid over ``[lo - 1, hi + 1]`` (NaN where
+    a draw never reaches the level, e.g. a plateau below it, or starts below
+    it); the Illinois variant of regula falsi then refines each bracket with
+    exact footprint averages to ``xtol`` mag (default 1e-4, a tenth or less of
+    any posterior sd).
+
+    The image-average curve of every draw is monotone, so its crossing is its
+    only one, and the grid is needed only for draws far from the others: the
+    grid is evaluated for up to 16 pilot draws; a bracket around their
+    crossings (widened by half their spread, at least 0.05 mag, inside the
+    grid) is tested for every draw, and only draws it does not bracket are
+    evaluated on the whole grid.  Identical draws are evaluated once.
 
     Returns
     -------
@@ -280,36 +329,78 @@ def average_crossings(model, thetas, footprint: Footprint, levels, lo: float, hi
         (e.g. a plateau below it) or starts below it.
     """
     thetas = np.atleast_2d(np.asarray(thetas, float))
+    uniq, inverse = _distinct(thetas)
+    nu = len(uniq)
     grid = np.arange(lo - 1.0, hi + 1.0 + 0.25, 0.25)
-    fc = average_prob(model, thetas, grid, footprint)
-    args = (footprint.depth, footprint.u, footprint.v, footprint.weight)
+    ng = grid.size
+    pilot = np.unique(np.linspace(0, nu - 1, min(nu, PILOT_DRAWS)).astype(int))
+    f_pilot = _average_pairs(model, np.repeat(uniq[pilot], ng, axis=0), np.tile(grid, pilot.size),
+                             footprint).reshape(pilot.size, ng)
+    full = {}  # the whole grid of the draws no pilot bracket holds, computed once for every level
+
+    def on_grid(rows):
+        need = np.array([r for r in rows if r not in full], dtype=np.int64)
+        if need.size:
+            f = _average_pairs(model, np.repeat(uniq[need], ng, axis=0), np.tile(grid, need.size),
+                               footprint).reshape(need.size, ng)
+            full.update(zip(need.tolist(), f))
+        return np.array([full[r] for r in rows]).reshape(len(rows), ng)
+
     out = {}
     for lev in levels:
         lev = float(lev)
-        m = crossing_magnitudes(grid, fc, lev)
-        rows = np.flatnonzero(np.isfinite(m))
+        m = np.full(nu, np.nan)
+        a = np.full(nu, np.nan)
+        b = np.full(nu, np.nan)
+        fa = np.full(nu, np.nan)
+        fb = np.full(nu, np.nan)
+        pc = crossing_magnitudes(grid, f_pilot, lev)
+        pc = pc[np.isfinite(pc)]
+        held = np.zeros(nu, bool)
+        if pc.size:
+            half = max(0.05, 0.5 * float(np.ptp(pc)))
+            a0, b0 = max(grid[0], float(pc.min()) - half), min(grid[-1], float(pc.max()) + half)
+            if a0 < b0:
+                ends = _average_pairs(model, np.concatenate([uniq, uniq]),
+                                      np.concatenate([np.full(nu, a0), np.full(nu, b0)]), footprint) - lev
+                held = (ends[:nu] >= 0) & (ends[nu:] < 0)
+                a[held], b[held], fa[held], fb[held] = a0, b0, ends[:nu][held], ends[nu:][held]
+        rest = np.flatnonzero(~held)
+        if rest.size:
+            fc = on_grid(rest.tolist())
+            mr = crossing_magnitudes(grid, fc, lev)
+            ok = np.isfinite(mr)
+            rows = rest[ok]
+            j = np.clip(np.searchsorted(grid, mr[ok]), 1, ng - 1)  # grid[j-1] <= crossing <= grid[j]
+            a[rows], b[rows] = grid[j - 1], grid[j]
+            fa[rows], fb[rows] = fc[ok, j - 1] - lev, fc[ok, j] - lev  # fa >= 0 > fb (falling curve)
+            held[rows] = True
+        rows = np.flatnonzero(held)
         if rows.size:
-            j = np.searchsorted(grid, m[rows])  # grid[j-1] <= crossing <= grid[j]
-            j = np.clip(j, 1, grid.size - 1)
-            a, b = grid[j - 1], grid[j]
-            fa, fb = fc[rows, j - 1] - lev, fc[rows, j] - lev  # fa >= 0 > fb (falling curve)
-            th = thetas[rows]
+            a, b, fa, fb = a[rows], b[rows], fa[rows], fb[rows]
+            th = uniq[rows]
+            c = np.clip(a + fa * (b - a) / np.where(fa != fb, fa - fb, 1.0), a, b)
             side = np.zeros(rows.size)
+            active = np.ones(rows.size, bool)
             for _ in range(60):
-                den = np.where(fa != fb, fa - fb, 1.0)
-                c = np.clip(a + fa * (b - a) / den, a, b)
-                fcur = model.average_prob_at(th, c, *args) - lev
+                act = np.flatnonzero(active)
+                den = np.where(fa[act] != fb[act], fa[act] - fb[act], 1.0)
+                c[act] = np.clip(a[act] + fa[act] * (b[act] - a[act]) / den, a[act], b[act])
+                fcur = _average_pairs(model, th[act], c[act], footprint) - lev
                 left = fcur >= 0  # the crossing lies right of c
+                sd = side[act]
                 # Illinois: halve the retained end's value when the same end is kept twice
-                fb = np.where(left & (side == 1), 0.5 * fb, fb)
-                fa = np.where(~left & (side == -1), 0.5 * fa, fa)
-                a, fa = np.where(left, c, a), np.where(left, fcur, fa)
-                b, fb = np.where(left, b, c), np.where(left, fb, fcur)
-                side = np.where(left, 1, -1)
-                if np.all(b - a < xtol) or np.all(np.abs(fcur) < 1e-10):
+                fb_, fa_ = fb[act], fa[act]
+                fb_ = np.where(left & (sd == 1), 0.5 * fb_, fb_)
+                fa_ = np.where(~left & (sd == -1), 0.5 * fa_, fa_)
+                a[act], fa[act] = np.where(left, c[act], a[act]), np.where(left, fcur, fa_)
+                b[act], fb[act] = np.where(left, b[act], c[act]), np.where(left, fb_, fcur)
+                side[act] = np.where(left, 1, -1)
+                active[act] = (b[act] - a[act] >= xtol) & (np.abs(fcur) >= 1e-10)
+                if not active.any():
                     break
             m[rows] = c
-        out[lev] = m
+        out[lev] = m[inverse]
     return out
 
 
@@ -323,9 +414,15 @@ def coarse_noise_map(noise: np.ndarray, mask: np.ndarray, step: int = 32) -> np.
         good = ~np.asarray(mask, bool) & np.isfinite(noise) & (noise > 0)
     padded[:ny, :nx] = np.where(good, noise, np.nan)
     blocks = padded.reshape(gy, step, gx, step).transpose(0, 2, 1, 3).reshape(gy, gx, step * step)
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore", RuntimeWarning)  # all-NaN blocks (fully masked) give NaN, as documented
-        return np.nanmedian(blocks, axis=-1).astype(np.float64)
+    # nanmedian by one sort (NaN sorts last): the mean of the middle good values, in the map's float32 as
+    # np.nanmedian computes it (identical values; np.nanmedian loops over the blocks and took 3x as long)
+    s = np.sort(blocks, axis=-1)
+    n = np.count_nonzero(~np.isnan(s), axis=-1)
+    lo = np.take_along_axis(s, np.maximum((n - 1) // 2, 0)[..., None], -1)[..., 0]
+    hi = np.take_along_axis(s, np.minimum(n // 2, s.shape[-1] - 1)[..., None], -1)[..., 0]
+    out = ((lo + hi) / np.float32(2)).astype(np.float64)
+    out[n == 0] = np.nan  # a fully masked block
+    return out
 
 
 def footprint_sample(mask: np.ndarray, n: int, rng: np.random.Generator) -> np.ndarray:
@@ -502,8 +599,6 @@ class CompletenessPosterior:
         return (m < lo) | (m > hi)
 
     def _warn_extrapolation(self, m, depth=None) -> None:
-        import warnings
-
         out = self.extrapolated(m)
         if np.any(out):
             lo, hi = self.meta["injected_range"]
@@ -565,8 +660,6 @@ class CompletenessPosterior:
         magnitude range (the value is then the model's extrapolation; a
         warning says so).
         """
-        import warnings
-
         out = {}
         for lev, draws in self.magnitudes_at(levels).items():
             ok = np.isfinite(draws)

@@ -43,15 +43,19 @@ class FitProgress:
     """Says which fits start and, every :data:`HEARTBEAT_SECONDS`, which are still running.
 
     The executors start tasks in the order given as workers free up (``known_order``; a Dask
-    scheduler decides its own order, so then only the number still running is known).  Lines go
-    through ``log``, which keeps them above any progress bar.
+    scheduler decides its own order, so then only the number still running is known).  With
+    ``groups`` (lists of tasks that one worker runs one after the other) a group takes one worker
+    and its later fits are announced as following the first.  Lines go through ``log``, which
+    keeps them above any progress bar.
     """
 
-    def __init__(self, tasks: list, log, *, describe, workers: int, known_order: bool = True):
-        self._pending = list(tasks)
-        self._running: dict[int, tuple[dict, float]] = {}
+    def __init__(self, tasks: list, log, *, describe, workers: int, known_order: bool = True, groups=None):
+        self._pending = [list(g) for g in groups] if groups is not None else [[t] for t in tasks]
+        self._running: dict[int, tuple[list, float]] = {}  # id of a group -> (group, start)
+        self._group_of: dict[int, list] = {}  # id of a task of a running group -> its group
+        self._left: dict[int, int] = {}  # id of a running group -> its fits not yet finished
         self._log, self._describe = log, describe
-        self._slots = max(1, int(workers)) if known_order else len(tasks)
+        self._slots = max(1, int(workers)) if known_order else sum(len(g) for g in self._pending)
         self._known = known_order
         self._lock = threading.Lock()
         self._stop = threading.Event()
@@ -63,10 +67,18 @@ class FitProgress:
 
     def _start_next(self) -> None:
         while self._pending and len(self._running) < self._slots:
-            task = self._pending.pop(0)
-            self._running[id(task)] = (task, time.monotonic())
-            if self._known:
-                self._log(f"fit: {self._name(task)}: started: {self._describe(task)}")
+            group = self._pending.pop(0)
+            self._running[id(group)] = (group, time.monotonic())
+            self._left[id(group)] = len(group)
+            for i, task in enumerate(group):
+                self._group_of[id(task)] = group
+                if not self._known:
+                    continue
+                if i == 0:
+                    self._log(f"fit: {self._name(task)}: started: {self._describe(task)}")
+                else:
+                    self._log(f"fit: {self._name(task)}: next in the same worker, after "
+                              f"{self._name(group[i - 1])}: {self._describe(task)}")
 
     def start(self) -> None:
         if not self._pending:
@@ -78,7 +90,12 @@ class FitProgress:
 
     def finished(self, task: dict) -> None:
         with self._lock:
-            self._running.pop(id(task), None)
+            group = self._group_of.pop(id(task), None)
+            if group is not None:
+                self._left[id(group)] -= 1
+                if self._left[id(group)] <= 0:
+                    self._running.pop(id(group), None)
+                    self._left.pop(id(group), None)
             self._start_next()
 
     def _beat(self) -> None:
@@ -89,10 +106,11 @@ class FitProgress:
             if not running:
                 continue
             if self._known:
-                self._log("fit: still running: " + ", ".join(f"{self._name(t)} ({_duration(now - t0)})"
-                                                              for t, t0 in running))
+                self._log("fit: still running: " + ", ".join(
+                    f"{' then '.join(self._name(t) for t in g)} ({_duration(now - t0)})" for g, t0 in running))
             else:
-                self._log(f"fit: {len(running)} fits still running ({_duration(now - running[0][1])})")
+                self._log(f"fit: {sum(len(g) for g, _ in running)} fits still running "
+                          f"({_duration(now - running[0][1])})")
 
     def stop(self) -> None:
         self._stop.set()

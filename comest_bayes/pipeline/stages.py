@@ -848,7 +848,7 @@ def _fit_stages(run: RunDirectory, image: ImageData, det: DetectionResult, confi
     cpu = {} if cpu is None else cpu
     from comest_bayes.pipeline.executors import run_tasks
     from comest_bayes.bayes.fit import shared_maps
-    from comest_bayes.pipeline.fits import fit_task
+    from comest_bayes.pipeline.fits import FitFailure, fit_task, fit_tasks
     from comest_bayes.pipeline.progress import FitProgress, describe_fit
     from comest_bayes.io.rundir import atomic_path
 
@@ -885,8 +885,18 @@ def _fit_stages(run: RunDirectory, image: ImageData, det: DetectionResult, confi
         for t in tasks:
             t["shared_maps"] = maps
     serial = compute.executor == "serial" or (compute.executor == "processes" and compute.workers <= 1)
+    # fits of one model (the completeness of every kind; the purity of every kind) run one after the other
+    # in one worker: a process traces a model's programs once, and on small runs that trace costs about
+    # as much CPU as the fit itself.  In one process (serial) every fit shares it anyway.
+    groups = None
+    if not serial:
+        by_model = {}
+        for t in tasks:
+            by_model.setdefault((t["quantity"], t["requested"]), []).append(t)
+        groups = list(by_model.values())
     progress = FitProgress(tasks, log, describe=lambda t: describe_fit(t, kinds[t["kind"]], config),
-                           workers=1 if serial else compute.workers, known_order=compute.executor != "dask")
+                           workers=1 if serial else compute.workers, known_order=compute.executor != "dask",
+                           groups=groups)
 
     def on_result(task, result):
         try:
@@ -930,10 +940,20 @@ def _fit_stages(run: RunDirectory, image: ImageData, det: DetectionResult, confi
             + ("n/a" if med is None else f"{med:.2f} (+{m50['hi68'] - med:.2f}/-{med - m50['lo68']:.2f})")
             + f", ESS {float(np.min(entry['diagnostics'].get('ess') or [0])):.0f}, {entry['seconds']:.1f} s")
 
+    def on_group(group, results):
+        for task, result in zip(group, results):
+            if isinstance(result, FitFailure):
+                raise result.exc
+            on_result(task, result)
+
     progress.start()
     try:
-        run_tasks(fit_task, tasks, on_result=on_result, executor=compute.executor, workers=compute.workers,
-                  scheduler=compute.scheduler, progress=compute.progress, desc="fits", runner=compute.runner)
+        if groups is None:
+            run_tasks(fit_task, tasks, on_result=on_result, executor=compute.executor, workers=compute.workers,
+                      scheduler=compute.scheduler, progress=compute.progress, desc="fits", runner=compute.runner)
+        else:
+            run_tasks(fit_tasks, groups, on_result=on_group, executor=compute.executor, workers=compute.workers,
+                      scheduler=compute.scheduler, progress=compute.progress, desc="fit groups", runner=compute.runner)
     finally:
         progress.stop()
     return len(tasks)

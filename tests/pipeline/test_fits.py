@@ -59,3 +59,18 @@ def test_a_map_that_is_no_image_is_refused(tmp_path):
     with pytest.raises(Exception, match="holds no 2-D image HDU"):
         fit_outcome_file(path, tmp_path / "out", model="logistic", noise_map=tmp_path / "table.fits",
                          image_shape=(100, 200))
+
+
+def test_fit_tasks_returns_the_fits_before_a_failure_with_it(monkeypatch):
+    from comest_bayes.pipeline import fits as fitting
+
+    def fake(task):
+        if task == "bad":
+            raise ValueError("this fit fails")
+        return task.upper()
+
+    monkeypatch.setattr(fitting, "fit_task", fake)
+    assert fitting.fit_tasks(["a", "b"]) == ["A", "B"]
+    out = fitting.fit_tasks(["a", "bad", "c"])  # the one after the failure is not run
+    assert out[0] == "A" and len(out) == 2 and isinstance(out[1], fitting.FitFailure)
+    assert "this fit fails" in str(out[1].exc) and "Traceback" in out[1].exc.__notes__[0]

@@ -113,3 +113,21 @@ def test_a_realizations_warnings_come_back_to_the_main_process_once_each(monkeyp
         result, caught = P.realization_with_warnings("task 3")
     assert result == ("result of", "task 3")
     assert caught == ["only 49 of 132 injections fit", "only 52 of 132 injections fit"]
+
+
+def test_fit_progress_gives_a_group_one_worker_and_names_its_later_fits_as_following():
+    lines = []
+    a, b, c, d = _task("point"), _task("buldisk"), _task("point", "purity"), _task("galaxy")
+    progress = P.FitProgress([a, b, c, d], lines.append, describe=lambda t: "x", workers=2, groups=[[a, b], [c], [d]])
+    progress.start()
+    try:
+        # two workers: the group of two and the next group start; the third group waits for a worker
+        assert lines == ["fit: point completeness: started: x",
+                         "fit: buldisk completeness: next in the same worker, after point completeness: x",
+                         "fit: point purity: started: x"]
+        progress.finished(a)  # the group still runs: no new start
+        assert len(lines) == 3
+        progress.finished(b)
+        assert lines[-1] == "fit: galaxy completeness: started: x"
+    finally:
+        progress.stop()
