@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import numpy as np
 from scipy import stats
+from comest_bayes.bayes.model import padded_size
 
 __all__ = ["shape_check", "P_WARN", "shape_warning"]
 
@@ -57,7 +58,6 @@ def shape_check(model, draws, mag_edges) -> dict:
     b, n, k = b[inside], n[inside], k[inside]
     cov, g = data.cov, len(m)
     if hasattr(cov, "take"):
-        from comest_bayes.bayes.model import padded_size
 
         # cells padded (repeating the last) to the likelihood's padded count: the kinds of a run, whose cell
         # counts differ a little, share one compiled prediction instead of tracing one each

@@ -19,10 +19,11 @@ import numpy as np
 
 from comest_bayes.errors import InputError
 from comest_bayes.io.jsonio import dumps
-from comest_bayes.ratios.binned import first_crossings
+from comest_bayes.ratios.binned import first_crossings, map_wcs
 from comest_bayes.bayes.outcomes import BinomialData, Covariates
 from comest_bayes.bayes.model import CompletenessModel
 from comest_bayes.bayes.spec import ModelSpec, spec_from_mapping
+from comest_bayes.io.rundir import atomic_path
 
 __all__ = ["CompletenessPosterior", "Footprint", "FootprintHistogram", "ExtrapolationWarning", "average_prob", "average_crossings", "coarse_noise_map", "footprint_sample",
            "crossing_magnitudes"]
@@ -696,7 +697,6 @@ class CompletenessPosterior:
         m50 = self.model.m50(self._draws(nsamples), cov).reshape(-1, gy, gx)
         header = fits.Header()
         if self.wcs is not None:
-            from comest_bayes.ratios.binned import map_wcs
 
             header.update(map_wcs(self.wcs, float(step_pix), (gy, gx)).to_header(relax=True))
         header["BINPIX"] = (step_pix, "side of a map bin in image pixels")
@@ -706,7 +706,6 @@ class CompletenessPosterior:
     # ---- persistence --------------------------------------------------------------
     def save(self, path) -> Path:
         """Write everything to one ``.npz`` (atomically)."""
-        from comest_bayes.io.rundir import atomic_path
 
         path = Path(path)
         spec_d = dataclasses.asdict(self.spec)

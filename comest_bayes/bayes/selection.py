@@ -15,9 +15,12 @@ from dataclasses import dataclass, field
 import numpy as np
 from scipy.special import logsumexp
 
-from comest_bayes.errors import InputError
-from comest_bayes.bayes.inference import FitResult, InferenceWarning, fit, log_prob_rows
-from comest_bayes.seeding import int_seed_for
+from comest_bayes.errors import InputError, ConfigError
+from comest_bayes.bayes.inference import FitResult, InferenceWarning, fit, log_prob_rows, fit_map, laplace
+from comest_bayes.seeding import int_seed_for, rng_for
+from comest_bayes.bayes.model import CompletenessModel, shared_layout
+from comest_bayes.bayes.checks import P_WARN, shape_check
+from comest_bayes.bayes.spec import resolve_candidates, load_spec
 
 __all__ = ["LooWarning", "LooResult", "SelectionResult", "loo_grouped", "compare_loo", "select_model",
            "KHAT_THRESHOLD"]
@@ -375,7 +378,6 @@ def compare_loo(loos: dict, *, margin: float = 4.0, margin_se: float = 2.0) -> t
 
 
 def _default_factory(spec, data, layout=None):
-    from comest_bayes.bayes.model import CompletenessModel
 
     return CompletenessModel(spec, data, layout=layout)
 
@@ -436,7 +438,6 @@ def choose_tau(model, *, seed: int, start=None, taus=TAU_GRID):
     table : list of dict
         ``tau``, ``log_evidence``, ``log_prob`` per scale.
     """
-    from comest_bayes.bayes.inference import fit_map
 
     table = []
     prev = start
@@ -470,7 +471,6 @@ def _resample(draws: np.ndarray, log_weights: np.ndarray, n: int, rng) -> np.nda
 
 def _laplace_draws(model, lap, *, seed: int, ndraws: int):
     """Draws from the Laplace Gaussian and their log importance weights (posterior over Gaussian)."""
-    from comest_bayes.seeding import rng_for
 
     rng = rng_for(seed, "laplace-draws")
     chol = np.linalg.cholesky(lap.cov)
@@ -575,7 +575,6 @@ m SE}_\Delta)` nats).  If no adequate candidate is
         ``shape_p`` and, for spline rungs, ``tau``; ``fits`` hold MAP and
         Laplace results (``posterior`` None with Laplace scoring).
     """
-    from comest_bayes.bayes.inference import fit_map, laplace
 
     t0 = time.perf_counter()
     if margin < 0 or margin_se < 0:
@@ -583,22 +582,18 @@ m SE}_\Delta)` nats).  If no adequate candidate is
     if scoring not in ("laplace", "emcee"):
         raise InputError(f"select_model: scoring must be 'laplace' or 'emcee', got {scoring!r}")
     if isinstance(candidates, str) or getattr(candidates, "is_selection", False):
-        from comest_bayes.bayes.spec import resolve_candidates
 
         candidates = resolve_candidates(candidates)
     candidates = list(candidates)
     if not candidates:
         raise InputError("select_model: no candidate models given")
     if any(isinstance(c, str) for c in candidates):
-        from comest_bayes.bayes.spec import load_spec
 
         candidates = [load_spec(c) if isinstance(c, str) else c for c in candidates]
     names = [_spec_name(c) for c in candidates]
     if len(set(names)) != len(names):
         raise InputError(f"select_model: candidate names must be unique, got {names}")
     if model_factory is None:
-        from comest_bayes.errors import ConfigError
-        from comest_bayes.bayes.model import shared_layout
 
         try:
             layout = shared_layout(candidates)
@@ -644,7 +639,6 @@ m SE}_\Delta)` nats).  If no adequate candidate is
         if quantities is not None:
             info["q_draws"] = quantities(model, eq_draws)
         if mag_edges is not None:
-            from comest_bayes.bayes.checks import shape_check
 
             info["shape"] = shape_check(model, eq_draws, mag_edges)
         fits[name], models[name] = result, model
@@ -655,7 +649,6 @@ m SE}_\Delta)` nats).  If no adequate candidate is
     rows, _, best = compare_loo(loos, margin=margin, margin_se=margin_se)
     top = names[-1]
     adequacy = {}
-    from comest_bayes.bayes.checks import P_WARN
 
     for name in names:
         info = extra[name]

@@ -9,6 +9,8 @@ from __future__ import annotations
 
 import numpy as np
 from astropy.table import Table
+import re
+import warnings
 
 __all__ = ["DETECTION_COLUMNS", "FLAG_MASKED", "FLAG_BLENDED", "FLAG_SATURATED", "FLAG_EDGE",
            "FLAG_APER_TRUNC", "FLAG_DEBLEND_OVERFLOW", "IMAGE_UNIT_COLUMNS", "make_catalog", "flux_to_mag",
@@ -71,8 +73,6 @@ def fits_unit(bunit):
     electrons, ``DN`` and nanomaggies have no FITS unit (a column given one
     makes astropy warn on every write or read).
     """
-    import re
-    import warnings
 
     import astropy.units as u
 

@@ -20,6 +20,8 @@ from scipy.optimize import least_squares
 from comest_bayes.constants import FWHM_PER_SIGMA
 from comest_bayes.detect.catalog import (FLAG_APER_TRUNC, FLAG_BLENDED, FLAG_DEBLEND_OVERFLOW, FLAG_EDGE, FLAG_MASKED, FLAG_SATURATED)
 from comest_bayes.errors import InputError
+from comest_bayes.inject.psfmodel import DEFAULT_MOFFAT_BETA, make_psf
+from comest_bayes.inject.render import point_stamp_size
 
 __all__ = ["FwhmEstimate", "estimate_fwhm", "select_stars", "fit_moffat", "moffat_image", "BAD_FLAGS",
            "BETA_RANGE", "HEADER_SEEING_KEYWORDS", "HeaderSeeing", "seeing_from_header", "measure_seeing",
@@ -789,7 +791,6 @@ def injection_psf(injection, seeing: dict, *, pixel_scale: float | None = None) 
     :data:`~comest_bayes.inject.psfmodel.DEFAULT_MOFFAT_BETA` (3), with the reason the
     stars gave none.  A FITS PSF image ignores both.
     """
-    from comest_bayes.inject.psfmodel import DEFAULT_MOFFAT_BETA
 
     model = injection.psf.strip()
     analytic = model.lower() in ("moffat", "gaussian", "kolmogorov")
@@ -829,8 +830,6 @@ def injection_psf(injection, seeing: dict, *, pixel_scale: float | None = None) 
         out["description"] = f"PSF image {model} (the effective PSF, sampled at pixel centres)"
         out["fwhm_source"] += " (used for the matching radius and separations only)"
     if pixel_scale is not None:
-        from comest_bayes.inject.render import point_stamp_size
-        from comest_bayes.inject.psfmodel import make_psf
 
         profile = make_psf(injection, fwhm, pixel_scale, beta=out["beta"], pixel_integrated=out["pixel_integrated"])
         out["stamp"] = point_stamp_size(profile, pixel_scale)

@@ -15,6 +15,7 @@ from comest_bayes.detect.catalog import (FLAG_APER_TRUNC, FLAG_BLENDED, FLAG_DEB
 from comest_bayes.config import DetectionConfig
 from comest_bayes.detect.base import DEFAULT_CONV, DetectionResult, filter_kernel, noise_map
 from comest_bayes.errors import ConfigError, DetectionOverflowError, InputError
+from comest_bayes.detect.sextractor import detect_sextractor
 
 # DetectionResult, filter_kernel and noise_map live in detection_base (shared with the SExtractor backend)
 # and are re-exported here, where users have always found them.
@@ -237,7 +238,6 @@ def detect_with_backend(data: np.ndarray, *, config: DetectionConfig = Detection
     its segmentation map.
     """
     if config.backend == "sextractor":
-        from comest_bayes.detect.sextractor import detect_sextractor
 
         return detect_sextractor(data, workdir=workdir, config=config, **kwargs)
     return detect_array(data, config=config, segmentation=segmentation, inplace=inplace,

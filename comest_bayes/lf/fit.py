@@ -20,6 +20,11 @@ from comest_bayes.lf.result import LFResult
 from comest_bayes.io.jsonio import dumps
 from comest_bayes.io import layout
 from comest_bayes.io.run import Run
+from comest_bayes.io.rundir import atomic_path
+from comest_bayes.bayes.posterior import CompletenessPosterior
+from comest_bayes.recover.transfer import transfer_from_outcomes
+from comest_bayes.report.plots import save_figure
+from comest_bayes.report.plots.lf import corner_figure, counts_figure
 
 __all__ = ['run_lf']
 
@@ -74,7 +79,6 @@ def _kinds_with_posteriors(run: Path) -> list[str]:
 
 
 def _update_summary(run_dir: Path, name: str, entry: dict) -> None:
-    from comest_bayes.io.rundir import atomic_path
 
     path = run_dir / layout.SUMMARY
     data = json.loads(path.read_text()) if path.is_file() else {}
@@ -129,8 +133,6 @@ def run_lf(run_dir, *, kind: str = "point", catalog=None, mag_column: str = "mag
     """
     from astropy.io import fits
 
-    from comest_bayes.bayes.posterior import CompletenessPosterior
-    from comest_bayes.recover.transfer import transfer_from_outcomes
 
     log = log or (lambda s: None)
     run = Path(run_dir)
@@ -192,8 +194,6 @@ def run_lf(run_dir, *, kind: str = "point", catalog=None, mag_column: str = "mag
     res.save(out)
     files = [layout.LF_POSTERIOR, layout.LF_JSON]
     if figures:
-        from comest_bayes.report.plots import save_figure
-        from comest_bayes.report.plots.lf import corner_figure, counts_figure
 
         save_figure(counts_figure(res), out / "counts", formats=("png",))
         save_figure(corner_figure(res), out / "corner", formats=("png",))

@@ -19,6 +19,10 @@ from comest_bayes.errors import ConfigError, InputError
 from comest_bayes.recover.transfer import PhotometricTransfer
 from comest_bayes.lf import MODES
 from comest_bayes.lf.result import LFResult, PERCENTILES
+from comest_bayes.bayes.outcomes import Covariates
+from comest_bayes.bayes.inference import fit
+from comest_bayes.seeding import int_seed_for, rng_for
+from comest_bayes.bayes.model import cell_logs
 
 __all__ = ['LFInputs', 'LFModel', 'build_inputs', 'completeness_arrays', 'expected_bins', 'fit_counts', 'effective_area', 'LFWarning']
 
@@ -181,7 +185,6 @@ def _cells_cov(post):
     The cells cover every unmasked pixel (:class:`comest_bayes.bayes.posterior.Footprint`), so a weighted sum over them
     is the exact footprint average; a model with no spatial term needs one cell.
     """
-    from comest_bayes.bayes.outcomes import Covariates
 
     cells = post.footprint_cells()
     if not _spatial(post):
@@ -271,7 +274,6 @@ def _median_completeness(post, draws, inputs: LFInputs, *, chunk: int = 64):
         return fbar_med[None, :], fbar_med
     med = np.empty((inputs.n, grid.size))
     if not post.spec.uses_smooth:  # depth only: f on DEPTH_NODES depths, linear in between (as the joint mode)
-        from comest_bayes.bayes.outcomes import Covariates
 
         depth = post.covariates(np.zeros(inputs.n), inputs.x, inputs.y).depth
         nodes, idx, frac = _depth_nodes(depth)
@@ -318,7 +320,6 @@ class LFModel:
 
     def __init__(self, counts: CountModel, inputs: LFInputs, *, f_obj=None, f_bar=None, post=None,
                  prior_mean=None, prior_cov=None, seed: int = 0, depth_nodes: int | None = DEPTH_NODES):
-        from comest_bayes.seeding import rng_for
 
         self.counts = counts
         self.inputs = inputs
@@ -356,7 +357,6 @@ class LFModel:
             def logprior(theta):
                 return lp_count(theta)
         else:
-            from comest_bayes.bayes.model import cell_logs
 
             st = post.model.structure
             # the sampled completeness parameters are the model's free ones (as in its posterior draws);
@@ -378,7 +378,6 @@ class LFModel:
             # depth-only models: f at the objects from DEPTH_NODES depth nodes, linear in between
             nodes = per_object and not post.spec.uses_smooth and bool(depth_nodes)
             if nodes:
-                from comest_bayes.bayes.outcomes import Covariates
 
                 obj_depth = post.covariates(np.zeros(inputs.n), inputs.x, inputs.y).depth
                 dnodes, idx, frac = _depth_nodes(obj_depth, depth_nodes)
@@ -650,8 +649,6 @@ def fit_counts(inputs: LFInputs, counts, *, mode: str = "joint", post=None, f_fi
     -------
     LFResult
     """
-    from comest_bayes.bayes.inference import fit
-    from comest_bayes.seeding import int_seed_for, rng_for
 
     log = log or (lambda s: None)
     t0 = time.perf_counter()

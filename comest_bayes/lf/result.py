@@ -12,6 +12,7 @@ from comest_bayes.errors import InputFileError
 from comest_bayes.io.jsonio import dumps, jsonable
 from comest_bayes.recover.transfer import PhotometricTransfer
 from comest_bayes.io import layout
+from comest_bayes.io.rundir import atomic_path
 
 __all__ = ['LFResult']
 
@@ -103,7 +104,6 @@ class LFResult:
 
     def save(self, directory) -> Path:
         """Write ``lf_posterior.npz`` and ``lf.json`` into ``directory`` (atomically); returns the npz path."""
-        from comest_bayes.io.rundir import atomic_path
 
         d = Path(directory)
         d.mkdir(parents=True, exist_ok=True)

@@ -26,7 +26,12 @@ from astropy.table import Table, vstack
 
 from comest_bayes.inject.design import (DEFAULT_UNIFORM_SHARE, TARGETS, MagnitudeDesign, curves_at, design_from_draws, uniform_design)
 from comest_bayes.errors import InputError
-from comest_bayes.seeding import rng_for
+from comest_bayes.seeding import rng_for, int_seed_for
+import warnings
+from comest_bayes.ratios import binned as R
+from comest_bayes.config import RunConfig
+from comest_bayes.bayes.fit import fit_kind, warm_state
+from comest_bayes.bayes.spec import load_spec
 
 __all__ = ["AdaptiveSettings", "BatchRecord", "SequentialResult", "run_sequential", "PosteriorView",
            "after_batch", "attained", "check_recorded", "check_magnitudes", "package_fitter"]
@@ -324,13 +329,7 @@ def package_fitter(*, image_shape, noise, mask, lo: float, hi: float, seed: int,
     from its median, the spline's smoothness kept), which costs a fraction of
     a selection.
     """
-    import warnings
 
-    from comest_bayes.ratios import binned as R
-    from comest_bayes.config import RunConfig
-    from comest_bayes.bayes.fit import fit_kind, warm_state
-    from comest_bayes.bayes.spec import load_spec
-    from comest_bayes.seeding import int_seed_for
 
     edges = R.magnitude_edges(lo, hi, mag_bin)
     centers = 0.5 * (edges[:-1] + edges[1:])

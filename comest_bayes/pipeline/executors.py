@@ -17,7 +17,7 @@ from concurrent.futures import ProcessPoolExecutor, as_completed
 from typing import Any, Callable, Iterable, Sequence
 
 from comest_bayes.errors import BackendUnavailableError, ConfigError
-from comest_bayes.pipeline.runtime import one_core
+from comest_bayes.pipeline.runtime import one_core, pin_to_one_core
 
 __all__ = ["run_tasks", "TaskRunner", "EXECUTORS", "default_workers"]
 
@@ -60,7 +60,6 @@ def _alive(pid: int) -> bool:
 
 def _worker_init(main_pid: int, counter) -> None:
     """Worker initializer: one core of its own (worker k on core k), and exit with the main process."""
-    from comest_bayes.pipeline.runtime import pin_to_one_core
 
     with counter.get_lock():
         index = counter.value

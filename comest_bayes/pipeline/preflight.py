@@ -16,6 +16,8 @@ import numpy as np
 
 from comest_bayes.errors import ConfigError, InputError
 from comest_bayes.inject.placement import PUBLISHED_DENSITY as _PUBLISHED_DENSITY
+from comest_bayes.inject.render import min_separation_pix, psf_enclosed_radius_pix
+from comest_bayes.inject.psfmodel import make_psf
 
 __all__ = ["MIN_USABLE_INJECTIONS", "FEW_USABLE_INJECTIONS", "SMALLEST_SEEING_PIX", "PUBLISHED_DENSITY",
            "TARGET_PER_REALIZATION", "PER_BACKGROUND_MESH", "HOLD_FRACTION", "DensityChoice", "choose_density",
@@ -120,7 +122,6 @@ def choose_density(kind: str, *, shape, pixel_scale: float, fwhm_pix: float | No
 
     ``fwhm_pix`` None (the seeing not yet known) takes a point source's separation as 0.
     """
-    from comest_bayes.inject.render import min_separation_pix
 
     ny, nx = (int(v) for v in shape)
     npix = nx * ny
@@ -223,8 +224,6 @@ def stamp_half_size(injection, fwhm_pix: float, pixel_scale: float) -> int:
     """Half-size in pixels of a point source's stamp (the smallest an injection gets)."""
     import galsim
 
-    from comest_bayes.inject.render import psf_enclosed_radius_pix
-    from comest_bayes.inject.psfmodel import make_psf
 
     psf = make_psf(injection, fwhm_pix, pixel_scale)
     radius, _ = psf_enclosed_radius_pix(galsim.PixelScale(pixel_scale).toImage(psf), STAMP_FLUX_FRACTION)
@@ -246,7 +245,6 @@ def injection_budget(kind: str, *, shape, mask, pixel_scale: float, fwhm_pix: fl
     :func:`choose_density`); an automatic ``injection.density`` of 0 without it counts at the
     published density.
     """
-    from comest_bayes.inject.render import min_separation_pix
 
     density = float(density if density is not None else (injection.density or PUBLISHED_DENSITY))
     ny, nx = (int(v) for v in shape)

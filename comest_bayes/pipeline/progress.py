@@ -14,6 +14,8 @@ from __future__ import annotations
 import threading
 import time
 import warnings
+from comest_bayes.bayes.spec import load_spec, resolve_candidates
+from comest_bayes.recover.realization import run_realization
 
 __all__ = ["FitProgress", "describe_fit", "realization_with_warnings", "HEARTBEAT_SECONDS"]
 
@@ -24,7 +26,6 @@ HEARTBEAT_SECONDS = 60.0
 
 def describe_fit(task: dict, counts_entry: dict, config) -> str:
     """What one fit does, in words: the model or the selection among models, the sampler, the data."""
-    from comest_bayes.bayes.spec import load_spec, resolve_candidates
 
     sampler = {"auto": "importance sampling (emcee if that fails)", "importance": "importance sampling",
                "emcee": "emcee"}.get(config.fit.sampler, config.fit.sampler)
@@ -128,7 +129,6 @@ def realization_with_warnings(task) -> tuple:
 
     A module-level function, so that the executors can send it to worker processes.
     """
-    from comest_bayes.recover.realization import run_realization
 
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")

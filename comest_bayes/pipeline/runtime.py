@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import os
 from pathlib import Path
+import sys
 
 __all__ = ["configure", "cache_dir", "pin_to_one_core", "one_core"]
 
@@ -47,7 +48,6 @@ def configure(threads: int | None = 1, *, cache: bool = True) -> None:
             return
         os.environ.setdefault("JAX_COMPILATION_CACHE_DIR", str(path))
         os.environ.setdefault("JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS", "0")
-        import sys
 
         if "jax" in sys.modules:  # already imported: set the options directly
             import jax

@@ -22,13 +22,32 @@ from astropy.table import Table
 
 from comest_bayes.config import RunConfig
 from comest_bayes.detect.catalog import set_image_units
-from comest_bayes.detect.sep_backend import DetectionResult, detect, filter_kernel
+from comest_bayes.detect.sep_backend import DetectionResult, detect, filter_kernel, detect_with_backend
 from comest_bayes.errors import ComestError, ConfigError, DetectionOverflowError, InputError
 from comest_bayes.io.image import ImageData, load_image
-from comest_bayes.io.rundir import RunDirectory, file_checksum
-from comest_bayes.seeding import seed_sequence
+from comest_bayes.io.rundir import RunDirectory, file_checksum, atomic_path
+from comest_bayes.seeding import seed_sequence, int_seed_for
 from comest_bayes.io.jsonio import dumps
 from comest_bayes.io import layout
+import json
+import math
+from comest_bayes.pipeline.preflight import SMALLEST_SEEING_PIX, budget_warnings, check_injection_count, check_memory, choose_densities, FEW_USABLE_INJECTIONS
+from comest_bayes.detect.psf import injection_psf, measure_seeing, BAD_FLAGS, point_size_check, select_stars
+from comest_bayes.sourcefree import build_source_free, format_percent, judge_replacement
+from comest_bayes.pipeline.executors import TaskRunner, run_tasks
+from comest_bayes.detect.sextractor import find_sextractor
+from comest_bayes.inject.cosmos import load_cosmos
+from comest_bayes.bayes.spec import load_spec
+from comest_bayes.inject.psfmodel import make_psf
+from comest_bayes.ratios.depth import noise_equivalent_area, point_source_depth_nea
+from comest_bayes.ratios import binned as R
+from comest_bayes.pipeline.progress import realization_with_warnings, FitProgress, describe_fit
+from comest_bayes.recover.realization import RealizationTask, SimContext, merge_realizations, realization_file, write_realization
+from comest_bayes.ratios.summary import SUMMARY_FORMAT, depth_summary, kind_binned, kind_summary, maps_hdulist
+from comest_bayes.pipeline.adaptive import after_batch, check_recorded, package_fitter
+from comest_bayes.inject.design import MagnitudeDesign, uniform_design
+from comest_bayes.bayes.fit import shared_maps
+from comest_bayes.pipeline.fits import FitFailure, fit_task, fit_tasks
 
 __all__ = ["ImageOptions", "ComputeOptions", "RunResult", "run_pipeline", "output_header"]
 
@@ -232,9 +251,6 @@ def run_pipeline(options: ImageOptions, config: RunConfig, out_dir, *,
 
 def _run_pipeline(options: ImageOptions, config: RunConfig, out_dir, *, log, compute, fwhm_fallback,
                   opened: list) -> RunResult:
-    from comest_bayes.pipeline.preflight import (SMALLEST_SEEING_PIX, budget_warnings, check_injection_count, check_memory, choose_densities)
-    from comest_bayes.detect.psf import injection_psf, measure_seeing
-    from comest_bayes.sourcefree import build_source_free, format_percent, judge_replacement
 
     # ---- validation: nothing is written before all of this passes -------------
     image = options.load()
@@ -246,11 +262,9 @@ def _run_pipeline(options: ImageOptions, config: RunConfig, out_dir, *, log, com
                                                      injection=config.injection, back_size=config.detection.back_size))
     filter_kernel(config.detection.filter)
     if config.detection.backend == "sextractor":
-        from comest_bayes.detect.sextractor import find_sextractor
 
         find_sextractor()
     if "cosmos" in config.injection.kinds:
-        from comest_bayes.inject.cosmos import load_cosmos
 
         load_cosmos(config.injection)  # a missing or broken catalog directory is an error now, not later
     if config.injection.psf not in ("moffat", "gaussian", "kolmogorov") and not Path(config.injection.psf).is_file():
@@ -260,7 +274,6 @@ def _run_pipeline(options: ImageOptions, config: RunConfig, out_dir, *, log, com
         raise ConfigError("injection.on='bnb' needs the bright-and-big image, which sourcefree.bnb=false (--no-bnb) "
                           "does not make; set sourcefree.bnb=true or injection.on='sfi' or 'observed'.")
     if config.fit.model != "none":
-        from comest_bayes.bayes.spec import load_spec
 
         load_spec(config.fit.model)  # an unknown model name is an error now, not after the injections
         if config.fit.purity_model != "none":
@@ -399,7 +412,6 @@ def _run_pipeline(options: ImageOptions, config: RunConfig, out_dir, *, log, com
     timings["sourcefree"] = run.stage_info("sourcefree").get("seconds")
 
     # ---- injection and recovery, then the fits: one set of workers for every batch of tasks ----
-    from comest_bayes.pipeline.executors import TaskRunner
 
     with TaskRunner(compute.executor, compute.workers, compute.scheduler) as runner:
         summary = _injection_stages(run, image, det, config, replace(compute, runner=runner), log, timings)
@@ -423,7 +435,6 @@ def _headers(image: ImageData) -> list:
 
 def _injection_psf_profile(config: RunConfig, image: ImageData, psf_choice: dict | None):
     """The GalSim profile (arcsec) the injections use, as decided by :func:`comest_bayes.detect.psf.injection_psf`."""
-    from comest_bayes.inject.psfmodel import make_psf
 
     psf_choice = psf_choice or {}
     return make_psf(config.injection, image.fwhm, image.pixel_scale, beta=psf_choice.get("beta"),
@@ -432,7 +443,6 @@ def _injection_psf_profile(config: RunConfig, image: ImageData, psf_choice: dict
 
 def _psf_nea(config: RunConfig, image: ImageData, psf_choice: dict | None = None) -> float:
     """Noise-equivalent area (pixels) of the injection PSF on the image's pixel grid."""
-    from comest_bayes.ratios.depth import noise_equivalent_area
 
     psf = _injection_psf_profile(config, image, psf_choice)
     return noise_equivalent_area(psf.drawImage(nx=64, ny=64, scale=image.pixel_scale, method="no_pixel").array)
@@ -440,7 +450,6 @@ def _psf_nea(config: RunConfig, image: ImageData, psf_choice: dict | None = None
 
 def _auto_mag_range(image: ImageData, det: DetectionResult, nea: float) -> tuple[float, float]:
     """(m5 - 5, m5 + 1.5) around the 5-sigma point-source depth of the median noise."""
-    from comest_bayes.ratios.depth import point_source_depth_nea
 
     sigma = float(np.median(det.noise[~image.mask]))
     m5 = point_source_depth_nea(sigma, image.zeropoint, nea, 5.0)
@@ -449,14 +458,6 @@ def _auto_mag_range(image: ImageData, det: DetectionResult, nea: float) -> tuple
 
 def _injection_stages(run: RunDirectory, image: ImageData, det: DetectionResult, config: RunConfig,
                       compute: "ComputeOptions", log, timings: dict) -> dict:
-    from comest_bayes.ratios import binned as R
-    from comest_bayes.detect.sep_backend import detect_with_backend
-    from comest_bayes.pipeline.executors import run_tasks
-    from comest_bayes.pipeline.progress import realization_with_warnings
-    from comest_bayes.recover.realization import RealizationTask, SimContext, merge_realizations, realization_file
-    from comest_bayes.io.rundir import atomic_path
-    from comest_bayes.pipeline.preflight import FEW_USABLE_INJECTIONS
-    from comest_bayes.ratios.summary import SUMMARY_FORMAT, depth_summary, kind_binned, kind_summary, maps_hdulist
 
     inj = config.injection
     psf_choice = run.state.get("psf") or {}
@@ -649,7 +650,6 @@ def _point_size_check(image: ImageData, det: DetectionResult, matched, log, star
     The stars are those whose Moffat fits gave the seeing (``star_rows`` of the detection catalog);
     without them (the fits failed, or a run older than them), the candidates on the stellar locus.
     """
-    from comest_bayes.detect.psf import BAD_FLAGS, point_size_check, select_stars
 
     if star_rows:
         rows = np.asarray(star_rows, dtype=np.int64)
@@ -695,7 +695,6 @@ def _realization_recorder(sims, cpu: dict, log, said: set, on_failure, *, label:
     can share it across batches), a failed realization goes to ``on_failure(name, last line of its
     error)``, and a finished one is written and its CPU seconds added to ``cpu["inject"]``.
     """
-    from comest_bayes.recover.realization import write_realization
 
     def on_result(task, packed):
         result, caught = packed
@@ -723,18 +722,9 @@ def _adaptive_injection(run: RunDirectory, ctx, config: RunConfig, compute: "Com
 
     Returns the number of realizations per kind and the ``summary.json`` entry ``adaptive``.
     """
-    import json
-    import math
 
     from astropy.table import vstack
 
-    from comest_bayes.pipeline.adaptive import after_batch, check_recorded, package_fitter
-    from comest_bayes.inject.design import MagnitudeDesign, uniform_design
-    from comest_bayes.pipeline.executors import run_tasks
-    from comest_bayes.pipeline.progress import realization_with_warnings
-    from comest_bayes.recover.realization import RealizationTask, merge_realizations, realization_file
-    from comest_bayes.io.rundir import atomic_path
-    from comest_bayes.seeding import int_seed_for
 
     ad = config.adaptive
     lo, hi = float(mag_range[0]), float(mag_range[1])
@@ -846,11 +836,6 @@ def _fit_stages(run: RunDirectory, image: ImageData, det: DetectionResult, confi
     CPU seconds (as measured in the workers) are added to ``cpu["fit"]``.
     """
     cpu = {} if cpu is None else cpu
-    from comest_bayes.pipeline.executors import run_tasks
-    from comest_bayes.bayes.fit import shared_maps
-    from comest_bayes.pipeline.fits import FitFailure, fit_task, fit_tasks
-    from comest_bayes.pipeline.progress import FitProgress, describe_fit
-    from comest_bayes.io.rundir import atomic_path
 
     if config.fit.model == "none":
         return 0

@@ -20,6 +20,7 @@ from scipy.special import ndtri
 from comest_bayes.constants import FWHM_PER_SIGMA
 from comest_bayes.errors import InputError
 from comest_bayes.ratios.binned import first_crossing
+from comest_bayes.sim.analytic import kernel_norm, predict, psf_image
 
 __all__ = ["DepthOffset", "m50_depth_offset", "noise_equivalent_area", "point_source_depth_nea", "limiting_magnitude", "point_source_depth", "HistogramCompleteness", "histogram_completeness"]
 
@@ -208,7 +209,6 @@ def m50_depth_offset(*, fwhm_pix: float, kernel, thresh: float, minarea: int, ns
     -------
     DepthOffset
     """
-    from comest_bayes.sim.analytic import kernel_norm, predict, psf_image
 
     nsigma = _positive("nsigma", nsigma)
     fwhm = _positive("fwhm_pix", fwhm_pix)

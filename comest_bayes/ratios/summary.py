@@ -11,6 +11,7 @@ from astropy.io import fits
 
 from comest_bayes.ratios import binned as R
 from comest_bayes.config import RunConfig
+from comest_bayes.ratios.depth import histogram_completeness, limiting_magnitude, point_source_depth, point_source_depth_nea
 
 __all__ = ["kind_summary", "maps_hdulist", "map_cube_header", "depth_summary", "SUMMARY_FORMAT"]
 
@@ -206,7 +207,6 @@ def depth_summary(noise: np.ndarray, mask: np.ndarray, *, zeropoint: float, fwhm
     when ``psf_nea`` is given (else a Gaussian of the FWHM);
     ``point_source_5sigma_gaussian`` is always the Gaussian value.
     """
-    from comest_bayes.ratios.depth import (histogram_completeness, limiting_magnitude, point_source_depth, point_source_depth_nea)
 
     sigma = float(np.median(noise[~mask])) if (~mask).any() else float(np.median(noise))
     diam = 2.0 * fwhm

@@ -25,6 +25,12 @@ from comest_bayes.errors import InputError
 from comest_bayes.recover.matching import classify_detections, match_one_to_one
 from comest_bayes.seeding import int_seed_for, rng_for
 from comest_bayes.io import layout
+from comest_bayes.inject.psfmodel import make_psf
+from comest_bayes.inject.cosmos import load_cosmos
+from comest_bayes.detect.sep_backend import detect_with_backend
+from comest_bayes.inject.render import make_truth, render_truth
+from comest_bayes.inject.design import MagnitudeDesign
+from comest_bayes.io.rundir import atomic_path
 
 __all__ = ["SimContext", "RealizationTask", "RealizationResult", "run_realization", "merge_realizations",
            "realization_file", "OUTCOME_COLUMNS"]
@@ -158,14 +164,12 @@ def _table_cached(key: tuple) -> Table:
 @functools.lru_cache(maxsize=2)
 def _psf(injection: InjectionConfig, fwhm: float, pixel_scale: float, beta: float = 0.0,
          pixel_integrated: bool = False):
-    from comest_bayes.inject.psfmodel import make_psf
 
     return make_psf(injection, fwhm, pixel_scale, beta=beta if beta > 0 else None, pixel_integrated=pixel_integrated)
 
 
 @functools.lru_cache(maxsize=1)
 def _cosmos(injection: InjectionConfig):
-    from comest_bayes.inject.cosmos import load_cosmos
 
     return load_cosmos(injection)
 
@@ -184,7 +188,6 @@ def _detect(image, mask, noise, ctx: SimContext):
     (:func:`_arrays_cached`).  The catalog is the same as
     :func:`~comest_bayes.detect.sep_backend.detect_array`'s default path gives.
     """
-    from comest_bayes.detect.sep_backend import detect_with_backend
 
     return detect_with_backend(image, mask=mask, weight_noise=noise if ctx.noise_mode == "weight" else None,
                                zeropoint=ctx.zeropoint, gain=ctx.gain, saturation=ctx.saturation, wcs=ctx.wcs,
@@ -204,7 +207,6 @@ def run_realization(task: RealizationTask) -> RealizationResult:
 
 
 def _run_realization(task: RealizationTask) -> RealizationResult:
-    from comest_bayes.inject.render import make_truth, render_truth
 
     ctx, kind, index = task.context, task.kind, task.index
     t0 = time.perf_counter()
@@ -215,7 +217,6 @@ def _run_realization(task: RealizationTask) -> RealizationResult:
     psf = _psf(ctx.injection, ctx.fwhm, ctx.pixel_scale, ctx.psf_beta, ctx.psf_pixel_integrated)
     design = None
     if task.design is not None:
-        from comest_bayes.inject.design import MagnitudeDesign
 
         design = MagnitudeDesign.from_dict(task.design)
     truth = make_truth(kind, shape=base.shape, mask=mask, pixel_scale=ctx.pixel_scale, fwhm_pix=ctx.fwhm,
@@ -230,7 +231,6 @@ def _run_realization(task: RealizationTask) -> RealizationResult:
     t2 = time.perf_counter()
     seconds = {"make": t1 - t0, "render": t2 - t1}
     if ctx.image_dir:  # before detection, which subtracts the background in place
-        from comest_bayes.io.rundir import atomic_path
 
         path = Path(ctx.image_dir) / layout.realization_image(kind, index)
         path.parent.mkdir(parents=True, exist_ok=True)
@@ -312,7 +312,6 @@ def match_realization(truth: Table, catalog: Table, baseline: Table, noise: np.n
 
 def write_realization(result: RealizationResult, directory) -> Path:
     """Write one realization's two tables atomically as ``<kind>/rNNNNN.fits``."""
-    from comest_bayes.io.rundir import atomic_path
 
     path = realization_file(directory, result.kind, result.index)
     path.parent.mkdir(parents=True, exist_ok=True)

@@ -14,6 +14,7 @@ from scipy.special import ndtr
 
 from comest_bayes.errors import InputError
 from comest_bayes.io.jsonio import dumps
+import json
 
 __all__ = ["PhotometricTransfer", "measure_transfer", "transfer_from_outcomes"]
 
@@ -122,7 +123,6 @@ class PhotometricTransfer:
 
     @classmethod
     def from_arrays(cls, z, prefix: str = "transfer_") -> "PhotometricTransfer":
-        import json
 
         return cls(nodes=np.array(z[f"{prefix}nodes"]), dm=np.array(z[f"{prefix}dm"]),
                    density=np.array(z[f"{prefix}density"]), cdf=np.array(z[f"{prefix}cdf"]),

@@ -19,12 +19,21 @@ from typing import Callable
 
 import numpy as np
 
-from comest_bayes.report.plots import figure_png, save_figure
+from comest_bayes.report.plots import figure_png, save_figure, new_axes
 from comest_bayes.report import rundata as RD
 from comest_bayes.io.rundir import atomic_path
 from comest_bayes.io import layout
 from comest_bayes.io.run import Run
 from comest_bayes.errors import RunDirectoryError
+import json
+import time
+from comest_bayes.report.plots.images import figure3
+from comest_bayes.report.plots.data import PosteriorBand
+from comest_bayes.report.plots.completeness import band_caption, ratios_figure, magnitude_comparison_figure
+from comest_bayes.report.plots.maps import m50_map_figure, ratio_maps_figure
+from comest_bayes.report.plots.diagnostics import sampler_figure, selection_plot
+from comest_bayes.lf.result import LFResult
+from comest_bayes.report.plots.lf import corner_figure, counts_figure
 
 __all__ = ["write_report", "ReportFigure", "lf_figures"]
 
@@ -290,7 +299,6 @@ def _facts_section(r: _Report) -> None:
 
 
 def _images_section(r: _Report, center, size: int) -> None:
-    from comest_bayes.report.plots.images import figure3
 
     run = r.run
     r.h2("images", "Images")
@@ -335,7 +343,6 @@ def _curve_for(run: Run, kind: str, quantity: str, mags):
         if not entry.get("curve"):
             return None, f"the {quantity} posterior could not be evaluated ({type(exc).__name__}: {exc})"
     if entry.get("curve"):
-        from comest_bayes.report.plots.data import PosteriorBand
 
         return PosteriorBand.from_dict(entry["curve"], label=label), None
     return None, f"the {quantity} posterior file is missing"
@@ -365,7 +372,6 @@ def _binned_table(r: _Report, kind: str) -> None:
 
 
 def _kind_sections(r: _Report) -> None:
-    from comest_bayes.report.plots.completeness import band_caption, ratios_figure
 
     run = r.run
     depth = RD.depth_lines(run.summary_record)
@@ -409,7 +415,6 @@ def _characteristic_table(r: _Report, kind: str) -> None:
 
 
 def _magnitudes_section(r: _Report) -> None:
-    from comest_bayes.report.plots.completeness import magnitude_comparison_figure
 
     run = r.run
     if not run.kind_names:
@@ -435,7 +440,6 @@ def _magnitudes_section(r: _Report) -> None:
 
 
 def _maps_section(r: _Report) -> None:
-    from comest_bayes.report.plots.maps import m50_map_figure, ratio_maps_figure
 
     run = r.run
     if not run.kind_names:
@@ -470,8 +474,6 @@ def _maps_section(r: _Report) -> None:
 
 
 def _model_sections(r: _Report) -> None:
-    from comest_bayes.report.plots.diagnostics import sampler_figure, selection_plot
-    from comest_bayes.report.plots import new_axes
 
     run = r.run
     entries = [(kind, q, run.kind_entry(kind).get(key)) for kind in run.kind_names
@@ -566,8 +568,6 @@ def lf_figures(lf_dir) -> list:
     list of (title, matplotlib.figure.Figure)
         Two per fit (counts, corner), in name order; empty when there is no fit.
     """
-    from comest_bayes.lf.result import LFResult
-    from comest_bayes.report.plots.lf import corner_figure, counts_figure
 
     root = Path(lf_dir)
     if (root / layout.LF_POSTERIOR).is_file():
@@ -656,7 +656,6 @@ def _adaptive_section(r: _Report) -> None:
 
 
 def _config_text(config: dict) -> str:
-    import json
 
     lines = []
     if "seed" in config:
@@ -740,7 +739,6 @@ def write_report(run_dir, out=None, *, log: Callable[[str], None] | None = None,
     RunDirectoryError
         When ``run_dir`` does not hold a comest-bayes run.
     """
-    import time
 
     import matplotlib
 

@@ -17,6 +17,15 @@ from comest_bayes.errors import InputFileError
 from comest_bayes.report.plots.data import BinnedCurve, ChainSamples, Cutout, DepthLine, MapPlane, PosteriorBand
 from comest_bayes.io import layout
 from comest_bayes.io.run import Run
+import warnings
+from comest_bayes.bayes.posterior import CompletenessPosterior
+from comest_bayes.recover.realization import realization_file
+from comest_bayes.inject.render import render_truth
+from comest_bayes.seeding import int_seed_for
+from comest_bayes.inject.cosmos import load_cosmos
+from comest_bayes.inject.psfmodel import make_psf
+from comest_bayes.pipeline.stages import ImageOptions
+from comest_bayes.report.plots.images import Markers, choose_region, cut
 
 __all__ = ["binned_curve", "depth_lines", "load_posterior", "posterior_band",
            "chain_samples", "map_planes", "m50_map", "matched_magnitudes", "Figure3Data", "figure3_data",
@@ -51,7 +60,6 @@ def depth_lines(summary: dict | None) -> list:
 
 def load_posterior(run: Run, kind: str, quantity: str = "completeness"):
     """The saved :class:`~comest_bayes.bayes.posterior.CompletenessPosterior`, or None when there is none."""
-    from comest_bayes.bayes.posterior import CompletenessPosterior
 
     key = "model" if quantity == "completeness" else "purity_model"
     entry = run.kind_entry(kind).get(key) or {}
@@ -161,7 +169,6 @@ def _decode(table: Table) -> Table:
 
 
 def _realization_tables(run: Run, kind: str, index: int) -> tuple[Table, Table]:
-    from comest_bayes.recover.realization import realization_file
 
     path = realization_file(run.file(layout.SIMS_DIR), kind, index)
     if not path.is_file():
@@ -191,10 +198,6 @@ def simulated_image(run: Run, kind: str, index: int = 0, *, prefer_saved: bool =
     how : str
         ``"saved"`` or ``"re-rendered"``.
     """
-    from comest_bayes.inject.render import render_truth
-    from comest_bayes.seeding import int_seed_for
-    from comest_bayes.inject.cosmos import load_cosmos
-    from comest_bayes.inject.psfmodel import make_psf
 
     saved = run.file(layout.SIMS_DIR) / layout.realization_image(kind, index)
     if prefer_saved and saved.is_file():
@@ -207,7 +210,6 @@ def simulated_image(run: Run, kind: str, index: int = 0, *, prefer_saved: bool =
     wcs = None
     header = fits.getheader(base_path)
     if facts.get("wcs"):
-        import warnings
 
         from astropy.wcs import WCS, FITSFixedWarning
 
@@ -265,9 +267,6 @@ def figure3_data(run: Run, *, kind: str | None = None, index: int | None = None,
     size : int
         Cutout side, pixels.
     """
-    from comest_bayes.pipeline.stages import ImageOptions
-    from comest_bayes.recover.realization import realization_file
-    from comest_bayes.report.plots.images import Markers, choose_region, cut
 
     kinds = run.kind_names or list(run.config.injection.kinds)
     kind = kind or kinds[0]

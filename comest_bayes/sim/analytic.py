@@ -16,6 +16,7 @@ from scipy import ndimage, optimize, signal, special
 
 from comest_bayes.constants import FWHM_PER_SIGMA
 from comest_bayes.errors import InputError
+from comest_bayes.seeding import rng_for
 
 __all__ = [
     "AnalyticPrediction",
@@ -616,7 +617,6 @@ def detection_probability_mc(mag, *, zeropoint: float, sigma: float, fwhm_pix: f
     -------
     ndarray, shape of ``mag``
     """
-    from comest_bayes.seeding import rng_for
 
     m = _mags(mag)
     sig = _check_positive("sigma", sigma)

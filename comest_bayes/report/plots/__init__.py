@@ -11,6 +11,7 @@ from __future__ import annotations
 from pathlib import Path
 
 from matplotlib.figure import Figure
+from comest_bayes.io.rundir import atomic_path
 
 __all__ = ["new_axes", "new_figure", "save_figure", "figure_png", "COLORS"]
 
@@ -55,7 +56,6 @@ def figure_png(fig: Figure, dpi: int = 110) -> bytes:
 
 def save_figure(fig: Figure, stem, *, dpi: int = 150, formats=("png", "pdf")) -> list[Path]:
     """Write ``stem.png`` and ``stem.pdf`` atomically; returns the paths written."""
-    from comest_bayes.io.rundir import atomic_path
 
     stem = Path(stem)
     stem.parent.mkdir(parents=True, exist_ok=True)

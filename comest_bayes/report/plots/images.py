@@ -15,6 +15,7 @@ import numpy as np
 
 from comest_bayes.report.plots import COLORS, new_axes, new_figure
 from comest_bayes.report.plots.data import Cutout
+from comest_bayes.report.plots.completeness import outside_legend
 
 __all__ = ["choose_region", "cut", "image_norm", "show_cutout", "mark", "Markers", "figure3"]
 
@@ -138,7 +139,6 @@ def mark(ax, cutout: Cutout, markers: Markers):
 
 def _legend(ax):
     """The markers' legend under the panel: over the image it hid the markers of its corner."""
-    from comest_bayes.report.plots.completeness import outside_legend
 
     outside_legend(ax, ncol=2)
 
