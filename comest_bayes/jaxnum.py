@@ -21,6 +21,8 @@ __all__ = ["jax", "jnp", "stored_jit", "export_folder"]
 
 
 _FOLDERS: dict = {}
+#: False once serialization turned out to be unavailable in this process (then stored_jit is jax.jit).
+_EXPORT_WORKS = [True]
 
 
 def export_folder():
@@ -80,7 +82,7 @@ class stored_jit:
 
     def __call__(self, *args):
         folder = export_folder()
-        if folder is None:
+        if folder is None or not _EXPORT_WORKS[0]:
             return self._jit(*args)
         static = tuple(args[i] for i in self._static)
         dyn = [a for i, a in enumerate(args) if i not in self._static]
@@ -119,9 +121,22 @@ class stored_jit:
 
         exported = export.export(jax.jit(bound))(*dyn)
         try:
+            blob = exported.serialize()
+        except ImportError:
+            # jax.export serializes with the optional `flatbuffers` package (a dependency of this
+            # package; missing only where it was removed): fall back to plain jit for the process
+            _EXPORT_WORKS[0] = False
+
+            def unstored(*values):
+                full = dict(fixed)
+                full.update(zip(positions, values))
+                return self._jit(*(full[i] for i in range(len(args))))
+
+            return unstored
+        try:
             folder.mkdir(parents=True, exist_ok=True)
             tmp = folder / f".tmp-{os.getpid()}-{path.name}"
-            tmp.write_bytes(exported.serialize())
+            tmp.write_bytes(blob)
             os.replace(tmp, path)
         except OSError:  # a read-only cache: this process still uses the program it traced
             pass

@@ -90,3 +90,23 @@ def test_stored_jit_does_not_load_a_program_of_other_sources(tmp_path, monkeypat
     src.write_text("version 2")  # the traced code changed: its old program must not be used
     stored_jit(_counting(counter), 0, sources=[src], name="g")(1.0, x, pair)
     assert counter["traces"] == 2
+
+
+def test_stored_jit_without_serialization_is_plain_jit(tmp_path, monkeypatch):
+    # jax.export serializes with the `flatbuffers` package; where it is missing (it raises ImportError),
+    # stored_jit computes with jax.jit for the rest of the process and stores nothing
+    from jax import export
+
+    def no_flatbuffers(self, *args, **kwargs):
+        raise ImportError("Please install 'flatbuffers' in order to use Exported serialization")
+
+    monkeypatch.setattr(export.Exported, "serialize", no_flatbuffers)
+    monkeypatch.setattr(jaxnum, "export_folder", lambda: tmp_path / "exports")
+    monkeypatch.setattr(jaxnum, "_EXPORT_WORKS", [True])
+    x = np.linspace(0.0, 1.0, 7)
+    pair = (np.arange(7.0), jnp.asarray(0.5))
+    plain = float(jax.jit(_counting({"traces": 0}), static_argnums=0)(2.0, x, pair))
+    f = stored_jit(_counting({"traces": 0}), 0, sources=[__file__], name="g")
+    assert float(f(2.0, x, pair)) == plain and float(f(2.0, x, pair)) == plain
+    assert jaxnum._EXPORT_WORKS == [False]
+    assert not list((tmp_path / "exports").glob("g-*"))
