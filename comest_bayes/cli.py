@@ -38,7 +38,8 @@ LF_OPTIONS = {
     "--catalog": {"dest": "catalog", "default": None, "help": "FITS table of sources (default: the run's "
                                                               f"{layout.DETECTION})"},
     "--mag-column": {"dest": "mag_column", "default": "mag_auto", "help": "magnitude column of the catalog"},
-    "--seed": {"dest": "seed", "type": int, "default": 0, "help": "root seed of the sampler"},
+    "--seed": {"dest": "seed", "type": int, "default": None,
+               "help": "root seed of the sampler (default: the run's own root seed)"},
     "--sampler": {"dest": "sampler", "choices": list(SAMPLERS), "default": "auto",
                   "help": "posterior sampler: auto (importance sampling of the Laplace approximation, emcee when "
                           "its k-hat or ESS fails), or emcee (the reference; slow in joint mode)"},

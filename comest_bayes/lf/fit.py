@@ -88,7 +88,7 @@ def _update_summary(run_dir: Path, name: str, entry: dict) -> None:
 
 
 def run_lf(run_dir, *, kind: str = "point", catalog=None, mag_column: str = "mag_auto", model="powerlaw",
-           mag_range=None, mode: str = "joint", seed: int = 0, name: str | None = None,
+           mag_range=None, mode: str = "joint", seed: int | None = None, name: str | None = None,
            log: Callable[[str], None] | None = None, ncomp: int = 16, min_ess: float = 400,
            max_steps: int = 20000, figures: bool = True, sampler: str = "auto") -> LFResult:
     """Fit number counts to a run's catalog, forward-modelling completeness and transfer.
@@ -111,7 +111,8 @@ def run_lf(run_dir, *, kind: str = "point", catalog=None, mag_column: str = "mag
         Measured magnitudes fitted; default: the injected range less 1 mag at
         each end, cut where the median completeness falls below 10%.
     mode : {"joint", "marginal", "fixed"}, default "joint"
-    seed : int, default 0
+    seed : int, optional
+        Root seed of the sampler (default: the run's root seed).
     name : str, optional
         Output folder ``DIR/lf/<name>`` (default ``<kind>_<model>_<mode>``).
     log : callable, optional
@@ -186,6 +187,8 @@ def run_lf(run_dir, *, kind: str = "point", catalog=None, mag_column: str = "mag
     name = name or f"{kind}_{spec.name}_{mode}"
     log(f"lf: {inputs.n} objects with {rng_[0]} <= {mag_column} < {rng_[1]} on {area * 3600:.2f} arcmin^2; "
         f"model {spec.name}, mode {mode}")
+    if seed is None:  # the run's own root seed, so a run and its LF fit come from one seed
+        seed = int(((record.state.get("fingerprint") or {}).get("config") or {}).get("seed", 0))
     res = fit_counts(inputs, CountModel(spec), mode=mode, post=post, seed=seed, ncomp=ncomp, min_ess=min_ess,
                      max_steps=max_steps, name=name, kind=kind, log=log, sampler=sampler)
     res.meta.update({"catalog": str(cat_path), "mag_column": mag_column, "run_dir": str(run),

@@ -221,3 +221,29 @@ def test_rendered_mock_recovers_the_power_law(tmp_path):
     assert abs(s["log_n"]["median"] - math.log10(2.0e4)) < 3 * s["log_n"]["sd"]
     assert abs(s["slope"]["median"] - 0.3) < 3 * s["slope"]["sd"]
     assert res.n_objects > 150
+
+
+def test_the_lf_seed_is_the_runs_root_seed_unless_one_is_given(fake_run, tmp_path, monkeypatch):
+    import shutil
+
+    import comest_bayes.lf.fit as lf_fit
+
+    run = tmp_path / "run"
+    shutil.copytree(fake_run, run)
+    state = json.loads((run / "run.json").read_text())
+    state["fingerprint"] = {"config": {"seed": 17}}
+    (run / "run.json").write_text(json.dumps(state))
+    seen = []
+
+    class Stop(Exception):
+        pass
+
+    def capture(*args, seed, **kwargs):
+        seen.append(seed)
+        raise Stop
+
+    monkeypatch.setattr(lf_fit, "fit_counts", capture)
+    for given in (None, 5):
+        with pytest.raises(Stop):
+            run_lf(run, kind="point", mode="fixed", mag_range=(20.0, 23.5), seed=given, figures=False)
+    assert seen == [17, 5]
