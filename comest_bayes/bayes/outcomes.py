@@ -17,7 +17,7 @@ import numpy as np
 from comest_bayes.errors import InputError
 from comest_bayes.bayes.spec import ModelSpec, load_spec, resolve_candidates
 
-__all__ = ['Covariates', 'BinomialData', 'covariates_from_outcomes', 'compress', 'compress_for', 'uncompressed', 'covariates_needed', 'covariate_warnings']
+__all__ = ['image_coordinate', 'depth_covariate', 'Covariates', 'BinomialData', 'covariates_from_outcomes', 'compress', 'compress_for', 'uncompressed', 'covariates_needed', 'covariate_warnings']
 
 _COVARIATE_GROUPS = ("m", "depth", "uv", "size")
 
@@ -146,6 +146,19 @@ class BinomialData:
 # From the outcome table to covariates
 # ---------------------------------------------------------------------------
 
+def image_coordinate(x, n: int) -> np.ndarray:
+    """The normalised image coordinate of pixel positions ``x`` along an axis of ``n`` pixels:
+    ``2 x / (n - 1) - 1``, -1 and +1 at the first and last pixel centres (the one definition the
+    fit and every query of a posterior use)."""
+    return 2.0 * np.asarray(x, np.float64) / max(int(n) - 1, 1) - 1.0
+
+
+def depth_covariate(sigma, sigma_ref: float) -> np.ndarray:
+    """The depth covariate ``d = -2.5 log10(sigma / sigma_ref)`` (mag; positive where the detection
+    noise is below the reference); ``sigma`` must be finite and positive."""
+    return -2.5 * np.log10(np.asarray(sigma, np.float64) / float(sigma_ref))
+
+
 def _colnames(table) -> list[str]:
     if hasattr(table, "colnames"):
         return list(table.colnames)
@@ -266,8 +279,8 @@ def covariates_from_outcomes(outcomes, *, image_shape, sigma_ref: float | None =
             raise InputError(f"{int(out.sum())} injection positions lie outside the image of shape (ny, nx) = "
                              f"{shape} (x in [{x.min():.1f}, {x.max():.1f}], y in [{y.min():.1f}, {y.max():.1f}]); "
                              "check image_shape (it is (ny, nx)).")
-        u = np.clip(2.0 * x / (nx - 1) - 1.0, -1.0, 1.0)
-        v = np.clip(2.0 * y / (ny - 1) - 1.0, -1.0, 1.0)
+        u = np.clip(image_coordinate(x, nx), -1.0, 1.0)
+        v = np.clip(image_coordinate(y, ny), -1.0, 1.0)
         available.append("uv")
     else:
         shape = None if image_shape is None else tuple(int(s) for s in image_shape)
@@ -289,7 +302,7 @@ def covariates_from_outcomes(outcomes, *, image_shape, sigma_ref: float | None =
             if not good.all():
                 warnings.warn(f"{int((~good).sum())} of {n} outcome rows have a non-finite or non-positive noise; "
                               "their depth covariate is set to 0 (the reference depth).", UserWarning, stacklevel=2)
-            depth[good] = -2.5 * np.log10(noise[good] / sigma_ref)
+            depth[good] = depth_covariate(noise[good], sigma_ref)
             available.append("depth")
 
     size = np.zeros(n)

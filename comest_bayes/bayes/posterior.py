@@ -20,7 +20,7 @@ import numpy as np
 from comest_bayes.errors import InputError
 from comest_bayes.io.jsonio import dumps
 from comest_bayes.ratios.binned import first_crossings, map_wcs
-from comest_bayes.bayes.outcomes import BinomialData, Covariates
+from comest_bayes.bayes.outcomes import BinomialData, Covariates, depth_covariate, image_coordinate
 from comest_bayes.bayes.model import CompletenessModel
 from comest_bayes.bayes.spec import ModelSpec, spec_from_mapping
 from comest_bayes.io.rundir import atomic_path
@@ -135,8 +135,8 @@ class Footprint:
         depth = np.zeros(sig.size)
         good = np.isfinite(sig) & (sig > 0)
         if sigma_ref:
-            depth[good] = -2.5 * np.log10(sig[good] / float(sigma_ref))
-        u, v = 2.0 * x / max(nx - 1, 1) - 1.0, 2.0 * y / max(ny - 1, 1) - 1.0
+            depth[good] = depth_covariate(sig[good], sigma_ref)
+        u, v = image_coordinate(x, nx), image_coordinate(y, ny)
         if ddepth is None or sig.size == 0:
             return cls(depth=depth, u=u, v=v, weight=np.full(sig.size, 1.0 / max(sig.size, 1)), npix=int(sig.size))
         nuv = int(nuv)
@@ -255,8 +255,8 @@ class FootprintHistogram:
                 key = (key * nuv + np.minimum(ii * nuv // nx, nuv - 1)) * nuv + np.minimum(jj * nuv // ny, nuv - 1)
             cnt += np.bincount(key, minlength=size)
             sl += np.bincount(key, weights=level, minlength=size)
-            su += np.bincount(key, weights=2.0 * ii / max(nx - 1, 1) - 1.0, minlength=size)
-            sv += np.bincount(key, weights=2.0 * jj / max(ny - 1, 1) - 1.0, minlength=size)
+            su += np.bincount(key, weights=image_coordinate(ii, nx), minlength=size)
+            sv += np.bincount(key, weights=image_coordinate(jj, ny), minlength=size)
         used = np.flatnonzero(cnt > 0)
         n = cnt[used]
         lkey = used // (nuv * nuv)
@@ -524,7 +524,7 @@ class CompletenessPosterior:
         i = np.clip((np.asarray(x) // self.grid_step).astype(int), 0, gx - 1)
         sigma = self.noise_grid[j, i]
         sigma = np.where(np.isfinite(sigma), sigma, self.meta["sigma_ref"])
-        return -2.5 * np.log10(sigma / self.meta["sigma_ref"])
+        return depth_covariate(sigma, self.meta["sigma_ref"])
 
     def covariates(self, m, x, y, hlr_arcsec=None) -> Covariates:
         """Covariates of magnitudes ``m`` at pixel positions ``x, y`` (broadcast together)."""
@@ -540,7 +540,7 @@ class CompletenessPosterior:
         with np.errstate(divide="ignore", invalid="ignore"):
             size = np.where(np.isfinite(hlr) & (hlr > 0) & bool(href), np.log10(hlr / (href or 1.0)), 0.0)
         return Covariates.make(m.ravel(), self._depth(x, y).ravel(),
-                               (2.0 * x / max(nx - 1, 1) - 1.0).ravel(), (2.0 * y / max(ny - 1, 1) - 1.0).ravel(),
+                               image_coordinate(x, nx).ravel(), image_coordinate(y, ny).ravel(),
                                size.ravel())
 
     def _draws(self, nsamples: int | None):
@@ -626,8 +626,8 @@ class CompletenessPosterior:
         # a posterior saved before footprints were exact: the mean over its position sample
         pos = self.footprint if self._spatial() else self.footprint[:1]
         ny, nx = self.meta["image_shape"]
-        return Footprint(depth=self._depth(pos[:, 0], pos[:, 1]), u=2.0 * pos[:, 0] / max(nx - 1, 1) - 1.0,
-                         v=2.0 * pos[:, 1] / max(ny - 1, 1) - 1.0, weight=np.full(len(pos), 1.0 / len(pos)),
+        return Footprint(depth=self._depth(pos[:, 0], pos[:, 1]), u=image_coordinate(pos[:, 0], nx),
+                         v=image_coordinate(pos[:, 1], ny), weight=np.full(len(pos), 1.0 / len(pos)),
                          npix=len(pos))
 
     def average_of(self, thetas, mags) -> np.ndarray:

@@ -241,3 +241,13 @@ def test_outcome_table_errors_are_clear():
                                                outcome_column="real")
     np.testing.assert_array_equal(real, [True, True, False])
     assert meta["available"] == ("m",)
+
+
+def test_the_one_covariate_transform_of_positions_and_noise():
+    from comest_bayes.bayes.outcomes import depth_covariate, image_coordinate
+
+    # first and last pixel centres map to -1 and +1; a one-pixel axis does not divide by zero
+    np.testing.assert_allclose(image_coordinate([0.0, 49.5, 99.0], 100), [-1.0, 0.0, 1.0])
+    assert image_coordinate(0.0, 1) == -1.0
+    # half the reference noise is 2.5 log10(2) = 0.753 mag deeper
+    np.testing.assert_allclose(depth_covariate([1.0, 2.0, 4.0], 2.0), [2.5 * np.log10(2.0), 0.0, -2.5 * np.log10(2.0)])
