@@ -15,7 +15,7 @@ import threading
 import time
 import warnings
 from comest_bayes.bayes.spec import load_spec, resolve_candidates
-from comest_bayes.recover.realization import run_realization
+from comest_bayes.recover import realization
 
 __all__ = ["FitProgress", "describe_fit", "realization_with_warnings", "HEARTBEAT_SECONDS"]
 
@@ -132,5 +132,5 @@ def realization_with_warnings(task) -> tuple:
 
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
-        result = run_realization(task)
+        result = realization.run_realization(task)  # looked up at call time (tests replace it)
     return result, list(dict.fromkeys(" ".join(str(w.message).split()) for w in caught))
