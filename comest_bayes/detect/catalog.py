@@ -7,10 +7,11 @@ bits): ``docs/detection.md``.
 
 from __future__ import annotations
 
-import numpy as np
-from astropy.table import Table
 import re
 import warnings
+
+import numpy as np
+from astropy.table import Table
 
 __all__ = ["DETECTION_COLUMNS", "FLAG_MASKED", "FLAG_BLENDED", "FLAG_SATURATED", "FLAG_EDGE",
            "FLAG_APER_TRUNC", "FLAG_DEBLEND_OVERFLOW", "IMAGE_UNIT_COLUMNS", "make_catalog", "flux_to_mag",

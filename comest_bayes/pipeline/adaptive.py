@@ -20,6 +20,7 @@ from __future__ import annotations
 import math
 import time
 from dataclasses import dataclass, field
+import warnings
 
 import numpy as np
 from astropy.table import Table, vstack
@@ -27,7 +28,6 @@ from astropy.table import Table, vstack
 from comest_bayes.inject.design import (DEFAULT_UNIFORM_SHARE, TARGETS, MagnitudeDesign, curves_at, design_from_draws, uniform_design)
 from comest_bayes.errors import InputError
 from comest_bayes.seeding import rng_for, int_seed_for
-import warnings
 from comest_bayes.ratios import binned as R
 from comest_bayes.config import RunConfig
 from comest_bayes.bayes.fit import fit_kind, warm_state

@@ -15,6 +15,8 @@ import warnings
 from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 from typing import Any, Callable
+import json
+import math
 
 import numpy as np
 from astropy.io import fits
@@ -29,8 +31,6 @@ from comest_bayes.io.rundir import RunDirectory, file_checksum, atomic_path
 from comest_bayes.seeding import seed_sequence, int_seed_for
 from comest_bayes.io.jsonio import dumps
 from comest_bayes.io import layout
-import json
-import math
 from comest_bayes.pipeline.preflight import SMALLEST_SEEING_PIX, budget_warnings, check_injection_count, check_memory, choose_densities, FEW_USABLE_INJECTIONS
 from comest_bayes.detect.psf import injection_psf, measure_seeing, BAD_FLAGS, point_size_check, select_stars
 from comest_bayes.sourcefree import build_source_free, format_percent, judge_replacement

@@ -8,13 +8,13 @@ estimator: ``docs/lf.md`` ("Photometric transfer").
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+import json
 
 import numpy as np
 from scipy.special import ndtr
 
 from comest_bayes.errors import InputError
 from comest_bayes.io.jsonio import dumps
-import json
 
 __all__ = ["PhotometricTransfer", "measure_transfer", "transfer_from_outcomes"]
 

@@ -16,6 +16,8 @@ import traceback
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Callable
+import json
+import time
 
 import numpy as np
 
@@ -25,8 +27,6 @@ from comest_bayes.io.rundir import atomic_path
 from comest_bayes.io import layout
 from comest_bayes.io.run import Run
 from comest_bayes.errors import RunDirectoryError
-import json
-import time
 from comest_bayes.report.plots.images import figure3
 from comest_bayes.report.plots.data import PosteriorBand
 from comest_bayes.report.plots.completeness import band_caption, ratios_figure, magnitude_comparison_figure

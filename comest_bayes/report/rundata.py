@@ -8,6 +8,7 @@ maps, a partial run), so the caller can say what is missing instead of failing.
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+import warnings
 
 import numpy as np
 from astropy.io import fits
@@ -17,7 +18,6 @@ from comest_bayes.errors import InputFileError
 from comest_bayes.report.plots.data import BinnedCurve, ChainSamples, Cutout, DepthLine, MapPlane, PosteriorBand
 from comest_bayes.io import layout
 from comest_bayes.io.run import Run
-import warnings
 from comest_bayes.bayes.posterior import CompletenessPosterior
 from comest_bayes.recover.realization import realization_file
 from comest_bayes.inject.render import render_truth
