@@ -621,13 +621,11 @@ def compress_for(specs, cov: Covariates, detected, **kwargs) -> BinomialData:
     # every likelihood call -- stays at a few thousand whatever N (the MAP shift against the
     # unbinned likelihood is measured in the tests).  On the plateau and the floor the magnitude step
     # grows to 0.1 mag (see compress's dm_max): the error per member stays at most the transition's.
-    steps = {"ddepth": ("depth", DDEPTH), "nuv": ("uv", 16), "dsize": ("size", 0.01)}
     # the MAP shift from the binning grows as step^2 sqrt(N): past DM_REFERENCE_N injections both steps
     # shrink as N^(-1/4), holding it at its value there (at most ~0.06 posterior sd, tests/bayes/test_outcomes.py)
     shrink = min(1.0, (DM_REFERENCE_N / max(len(cov), 1)) ** 0.25)
+    steps = {"ddepth": ("depth", DDEPTH * shrink), "nuv": ("uv", 16), "dsize": ("size", 0.01)}
     kwargs.setdefault("dm", DM_TRANSITION * shrink)
-    if "depth" in need:
-        kwargs.setdefault("ddepth", DDEPTH * shrink)
     kwargs.setdefault("dm_max", 0.1)
     kwargs.setdefault("along_depth", True)
     for key, (group, default) in steps.items():

@@ -7,42 +7,13 @@ import numpy as np
 import pytest
 from astropy.table import Table
 
-from comest_bayes.config import load_config
-from comest_bayes.bayes.fit import fit_kind, purity_outcomes
-
-SHAPE = (400, 600)
-SPLIT = 330  # x where the shallow part starts
-
-
-def _outcomes(n, *, m50=24.0, w=0.15, A=0.98, depth_slope=1.0, seed=0):
-    """Outcomes from a known logistic completeness; the right 45% of the image is 0.5 mag shallower.
-
-    The deep part holds most injections, so the model's reference noise (the median) is the deep
-    noise and the true m50_0 is ``m50``.
-    """
-    rng = np.random.default_rng(seed)
-    x = rng.uniform(0, SHAPE[1] - 1, n)
-    y = rng.uniform(0, SHAPE[0] - 1, n)
-    m = rng.uniform(21.0, 26.5, n)
-    noise = np.where(x < SPLIT, 1.0, 10 ** (0.4 * 0.5))
-    d = -2.5 * np.log10(noise)
-    mu = m50 + depth_slope * d
-    p = A / (1.0 + np.exp(-(mu - m) / w))
-    noise_map = np.where(np.arange(SHAPE[1])[None, :] < SPLIT, 1.0, 10 ** (0.4 * 0.5)) * np.ones(SHAPE)
-    return Table({"x": x, "y": y, "mag": m, "noise": noise, "hlr_arcsec": np.full(n, np.nan),
-                  "detected": rng.random(n) < p}), noise_map
-
-
-def _fit(table, noise_map, model, min_ess=300, **kw):
-    config = load_config(overrides=[f"fit.model={model}", f"fit.min_ess={min_ess}"], seed=3)
-    return fit_kind(table, kind="point", quantity="completeness", requested=model, config=config,
-                    image_shape=SHAPE, noise=noise_map, mask=np.zeros(SHAPE, bool), wcs_header=None,
-                    mag_range=(21.0, 26.5), mag_centers=np.arange(21.1, 26.5, 0.2), **kw)
+from comest_bayes.bayes.fit import purity_outcomes
+from outcome_truths import SHAPE, depth_split_outcomes, fit_depth_split
 
 
 def test_depth_model_recovers_the_truth_and_reports_intervals():
-    table, noise_map = _outcomes(20000)
-    post, entry = _fit(table, noise_map, "logistic_depth")
+    table, noise_map = depth_split_outcomes(20000)
+    post, entry = fit_depth_split(table, noise_map, "logistic_depth")
     par = entry["parameters"]
     # 20000 outcomes constrain m50_0 and beta_depth to ~0.01 and ~0.03: 4 posterior sd of tolerance
     for name, truth in (("m50_0", 24.0), ("beta_depth", 1.0), ("w", 0.15), ("A", 0.98)):
@@ -62,8 +33,8 @@ def test_depth_model_recovers_the_truth_and_reports_intervals():
 
 
 def test_auto_selection_prefers_the_depth_model_when_depth_varies():
-    table, noise_map = _outcomes(6000, seed=1)
-    post, entry = _fit(table, noise_map, "auto", min_ess=100)
+    table, noise_map = depth_split_outcomes(6000, seed=1)
+    post, entry = fit_depth_split(table, noise_map, "auto", min_ess=100)
     # the truth is a logistic whose m50 follows the depth: that rung agrees with the spline on every
     # targeted quantity (adequate) and is the simplest within the LOO margin; the logistic without
     # depth is ~180 nats worse and misses f at the probes by 2-3 of its sd
@@ -75,15 +46,15 @@ def test_auto_selection_prefers_the_depth_model_when_depth_varies():
 
 
 def test_auto_selection_keeps_the_simple_model_on_uniform_depth():
-    table, noise_map = _outcomes(6000, depth_slope=0.0, seed=2)
+    table, noise_map = depth_split_outcomes(6000, depth_slope=0.0, seed=2)
     table["noise"] = 1.0
-    post, entry = _fit(table, np.ones(SHAPE), "auto", min_ess=100)
+    post, entry = fit_depth_split(table, np.ones(SHAPE), "auto", min_ess=100)
     assert entry["selection"]["chosen"] == "logistic"
 
 
 @pytest.mark.parametrize("case", ["all", "none", "few"])
 def test_degenerate_outcomes_give_a_finite_posterior_and_a_warning(case):
-    table, noise_map = _outcomes(3000, seed=4)
+    table, noise_map = depth_split_outcomes(3000, seed=4)
     if case == "all":
         table["detected"] = True
     elif case == "none":
@@ -92,7 +63,7 @@ def test_degenerate_outcomes_give_a_finite_posterior_and_a_warning(case):
         table = table[:15]
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
-        post, entry = _fit(table, noise_map, "logistic", min_ess=100)
+        post, entry = fit_depth_split(table, noise_map, "logistic", min_ess=100)
     # the warning names the case: every outcome positive / negative, or too few outcomes for the data to lead
     expected = {"all": "every point outcome is positive", "none": "every point outcome is negative",
                 "few": "only 15 outcomes: the posterior of the point completeness is dominated by the priors"}[case]
@@ -114,19 +85,19 @@ def test_purity_outcomes_stack_matched_and_false_detections():
 def test_all_injections_in_one_bin_warn_that_the_shape_is_unconstrained():
     # every injection within 0.05 mag of 23.6: the data say f ~ 0.8 there and nothing about the width, m80 or
     # m90 (the issue's case: m80 came out 0.4 mag off with no warning)
-    table, noise_map = _outcomes(3000, seed=6)
+    table, noise_map = depth_split_outcomes(3000, seed=6)
     table["mag"] = 23.6 + 0.09 * (np.asarray(table["mag"]) - 21.0) / 5.5 - 0.045
     with warnings.catch_warnings(record=True):
         warnings.simplefilter("always")
-        post, entry = _fit(table, noise_map, "logistic_depth", min_ess=100)
+        post, entry = fit_depth_split(table, noise_map, "logistic_depth", min_ess=100)
     assert any("less than two" in w and "not constrained" in w for w in entry["warnings"])
     # and a magnitude outside the injected range is flagged as extrapolated
     assert post.extrapolated(24.5) and not post.extrapolated(23.6)
 
 
 def test_fit_records_the_cpu_it_spent_and_the_injected_range(tmp_path):
-    table, noise_map = _outcomes(3000, seed=7)
-    post, entry = _fit(table, noise_map, "logistic_depth", min_ess=100)
+    table, noise_map = depth_split_outcomes(3000, seed=7)
+    post, entry = fit_depth_split(table, noise_map, "logistic_depth", min_ess=100)
     lo, hi = post.meta["injected_range"]
     assert lo == pytest.approx(float(np.min(table["mag"]))) and hi == pytest.approx(float(np.max(table["mag"])))
     assert entry["m50"]["extrapolated"] is False and entry["m50"]["lo95"] < entry["m50"]["lo68"]
@@ -139,15 +110,15 @@ def test_a_warm_refit_equals_a_cold_fit_of_the_same_model():
     from comest_bayes.bayes.fit import warm_state
     from comest_bayes.errors import InputError
 
-    first, noise_map = _outcomes(3000, seed=5)
-    more, _ = _outcomes(9000, seed=6)
-    post1, _ = _fit(first, noise_map, "logistic_depth")
+    first, noise_map = depth_split_outcomes(3000, seed=5)
+    more, _ = depth_split_outcomes(9000, seed=6)
+    post1, _ = fit_depth_split(first, noise_map, "logistic_depth")
     warm = warm_state(post1)
     assert warm["model"] == "logistic_depth" and len(warm["theta"]) == len(warm["names"])
-    cold, e_cold = _fit(more, noise_map, "logistic_depth")
-    hot, e_hot = _fit(more, noise_map, "logistic_depth", warm=warm)
+    cold, e_cold = fit_depth_split(more, noise_map, "logistic_depth")
+    hot, e_hot = fit_depth_split(more, noise_map, "logistic_depth", warm=warm)
     sd = 0.5 * (e_cold["m50"]["hi68"] - e_cold["m50"]["lo68"])
     for key in ("median", "lo68", "hi68"):
         assert abs(e_hot["m50"][key] - e_cold["m50"][key]) < 0.15 * sd, (key, e_hot["m50"], e_cold["m50"])
     with pytest.raises(InputError, match="warm refit needs one model"):
-        _fit(more, noise_map, "auto", warm=warm)
+        fit_depth_split(more, noise_map, "auto", warm=warm)

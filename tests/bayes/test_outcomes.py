@@ -10,27 +10,15 @@ import warnings
 import numpy as np
 import pytest
 from astropy.table import Table
-from scipy import special
 
 from comest_bayes.errors import ConfigError, InputError
 from comest_bayes.bayes.model import CompletenessModel
 from comest_bayes.bayes.outcomes import Covariates, compress, compress_for, covariates_from_outcomes, uncompressed
 from comest_bayes.bayes.spec import ModelSpec
+from outcome_truths import synthetic
 
 
 # --------------------------------------------------------------------------- helpers
-
-def synthetic(n, seed, *, m50=24.0, w=0.2, A=0.95, floor=0.01, beta_depth=1.0, c10=0.0, mrange=(20.0, 27.0)):
-    """Outcomes drawn from the logistic model with known parameters (depth follows u, plus scatter)."""
-    rng = np.random.default_rng(seed)
-    m = rng.uniform(*mrange, n)
-    u = rng.uniform(-1, 1, n)
-    v = rng.uniform(-1, 1, n)
-    depth = 0.3 * u - 0.2 * v ** 2 + rng.normal(0.0, 0.05, n)
-    cov = Covariates(m, depth, u, v, np.zeros(n))
-    field = m50 + beta_depth * depth + c10 * u
-    f = floor + (A - floor) * special.expit((field - m) / w)
-    return cov, rng.uniform(size=n) < f
 
 
 # --------------------------------------------------------------------------- compression

@@ -5,13 +5,13 @@ import warnings
 
 import numpy as np
 import pytest
-from astropy.table import Table
 
 from comest_bayes.bayes.fit import fit_kind
 from comest_bayes.bayes.outcomes import BinomialData, Covariates
 from comest_bayes.bayes.model import CompletenessModel
 from comest_bayes.config import load_config
 from comest_bayes.bayes.posterior import (CompletenessPosterior, ExtrapolationWarning, Footprint, FootprintHistogram, average_crossings, average_prob)
+from outcome_truths import SHAPE as FIT_SHAPE, depth_split_outcomes, fit_depth_split
 
 SHAPE = (120, 160)
 
@@ -158,39 +158,10 @@ def test_extrapolated_magnitudes_are_flagged_and_warned(tmp_path):
 # A known logistic completeness with a depth step, fitted by comest_bayes.bayes.fit.fit_kind; the tests
 # below check what the resulting CompletenessPosterior answers.
 
-FIT_SHAPE = (400, 600)
-FIT_SPLIT = 330  # x where the shallow part starts
-
-
-def _fitted_outcomes(n, *, m50=24.0, w=0.15, A=0.98, depth_slope=1.0, seed=0):
-    """Outcomes from a known logistic completeness; the right 45% of the image is 0.5 mag shallower.
-
-    The deep part holds most injections, so the model's reference noise (the median) is the deep
-    noise and the true m50_0 is ``m50``.
-    """
-    rng = np.random.default_rng(seed)
-    x = rng.uniform(0, FIT_SHAPE[1] - 1, n)
-    y = rng.uniform(0, FIT_SHAPE[0] - 1, n)
-    m = rng.uniform(21.0, 26.5, n)
-    noise = np.where(x < FIT_SPLIT, 1.0, 10 ** (0.4 * 0.5))
-    d = -2.5 * np.log10(noise)
-    mu = m50 + depth_slope * d
-    p = A / (1.0 + np.exp(-(mu - m) / w))
-    noise_map = np.where(np.arange(FIT_SHAPE[1])[None, :] < FIT_SPLIT, 1.0, 10 ** (0.4 * 0.5)) * np.ones(FIT_SHAPE)
-    return Table({"x": x, "y": y, "mag": m, "noise": noise, "hlr_arcsec": np.full(n, np.nan),
-                  "detected": rng.random(n) < p}), noise_map
-
-
-def _fitted(table, noise_map, model, min_ess=300, **kw):
-    config = load_config(overrides=[f"fit.model={model}", f"fit.min_ess={min_ess}"], seed=3)
-    return fit_kind(table, kind="point", quantity="completeness", requested=model, config=config,
-                    image_shape=FIT_SHAPE, noise=noise_map, mask=np.zeros(FIT_SHAPE, bool), wcs_header=None,
-                    mag_range=(21.0, 26.5), mag_centers=np.arange(21.1, 26.5, 0.2), **kw)
-
 
 def test_posterior_saves_and_reloads(tmp_path):
-    table, noise_map = _fitted_outcomes(4000, seed=5)
-    post, _ = _fitted(table, noise_map, "logistic_depth")
+    table, noise_map = depth_split_outcomes(4000, seed=5)
+    post, _ = fit_depth_split(table, noise_map, "logistic_depth")
     path = post.save(tmp_path / "p.npz")
     again = CompletenessPosterior.load(path)
     np.testing.assert_array_equal(again.samples, post.samples)
@@ -209,7 +180,7 @@ def test_sky_coordinate_query_equals_the_pixel_query():
     w.wcs.crval = [150.0, 2.0]
     w.wcs.crpix = [300.0, 200.0]
     w.wcs.cd = np.array([[-0.2, 0.05], [0.05, 0.2]]) / 3600.0
-    table, noise_map = _fitted_outcomes(3000, seed=6)
+    table, noise_map = depth_split_outcomes(3000, seed=6)
     config = load_config(overrides=["fit.model=logistic_depth", "fit.min_ess=100"], seed=3)
     post, _ = fit_kind(table, kind="point", quantity="completeness", requested="logistic_depth", config=config,
                        image_shape=FIT_SHAPE, noise=noise_map, mask=np.zeros(FIT_SHAPE, bool),
@@ -229,8 +200,8 @@ def test_two_pass_crossing_magnitudes_equal_the_full_fine_grid():
     # grids are offset from each other, so linear interpolation differs by < ~1e-4 mag near m80/m90)
     from comest_bayes.bayes.posterior import crossing_magnitudes
 
-    table, noise_map = _fitted_outcomes(3000, seed=9)
-    post, _ = _fitted(table, noise_map, "logistic_depth", min_ess=100)
+    table, noise_map = depth_split_outcomes(3000, seed=9)
+    post, _ = fit_depth_split(table, noise_map, "logistic_depth", min_ess=100)
     got = post.magnitudes_at((0.5, 0.8, 0.9), nsamples=200)
     grid = np.arange(21.0 - 2.0, 26.5 + 2.0 + 0.01, 0.01)
     f = post.average_curve(grid, nsamples=200)

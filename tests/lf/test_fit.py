@@ -15,48 +15,10 @@ from comest_bayes.errors import ConfigError, InputError, InputFileError
 from comest_bayes.lf.model import LFWarning
 from comest_bayes.lf.result import LFResult
 from comest_bayes.lf.fit import run_lf
-from comest_bayes.bayes.spec import load_spec
-from comest_bayes.bayes.posterior import CompletenessPosterior
+from lf_truths import logistic, mock_catalog, synthetic_posterior
 from conftest import REPO_ROOT
 
 
-LN10 = math.log(10.0)
-
-
-def _sample_powerlaw(rng, log_n, slope, area, lo, hi, m_ref=23.0):
-    b = slope * LN10
-    expected = area * 10**log_n * (math.exp(b * (hi - m_ref)) - math.exp(b * (lo - m_ref))) / b
-    n = rng.poisson(expected)
-    u = rng.random(n)
-    return lo + np.log1p(u * (math.exp(b * (hi - lo)) - 1.0)) / b
-
-
-def _logistic(m, m50, w):
-    return 1.0 / (1.0 + np.exp((m - m50) / w))
-
-
-def _synthetic_posterior(m50=23.0, w=0.3, sd_m50=0.08, sd_logw=0.1, nsamples=3000, seed=0):
-    """A CompletenessPosterior (logistic, no spatial term) whose draws are a known Gaussian around (m50, w)."""
-    spec = load_spec("logistic")
-    post = CompletenessPosterior(spec=spec, samples=np.zeros((1, 4)), names=["m50_0", "log_w", "logit_A",
-                                                                             "logit_floor"],
-                                 meta={"sigma_ref": None, "hlr_ref": None, "image_shape": (200, 200),
-                                       "mag_range": [18.0, 27.0], "kind": "point", "quantity": "completeness"},
-                                 footprint=np.array([[100.0, 100.0]]))
-    centre = post.model.inverse_transform({"m50_0": m50, "w": w, "A": 0.995, "floor": 1e-4})
-    rng = np.random.default_rng(seed)
-    draws = np.tile(centre, (nsamples, 1))
-    draws[:, 0] += sd_m50 * rng.standard_normal(nsamples)
-    draws[:, 1] += sd_logw * rng.standard_normal(nsamples)
-    post.samples = draws
-    return post
-
-
-def _mock_catalog(rng, *, log_n=4.3, slope=0.3, area=0.0123, m50=23.0, w=0.3, bias=0.03, sigma=0.08):
-    true = _sample_powerlaw(rng, log_n, slope, area, 17.0, 28.0)
-    det = rng.random(true.size) < 0.995 * _logistic(true, m50, w)
-    obs = true[det] + bias + sigma * rng.standard_normal(det.sum())
-    return obs
 
 
 # --------------------------------------------------------------------------- run directory
@@ -67,13 +29,13 @@ def fake_run(tmp_path_factory):
     """A run directory with the files run_lf reads, made from known truths (no image)."""
     d = tmp_path_factory.mktemp("run")
     rng = np.random.default_rng(30)
-    post = _synthetic_posterior(sd_m50=0.03, sd_logw=0.05)
+    post = synthetic_posterior(sd_m50=0.03, sd_logw=0.05)
     (d / "posterior").mkdir()
     post.save(d / "posterior" / "point_completeness.npz")
     (d / "catalogs").mkdir()
     n = 6000
     inj = Table({"mag": rng.uniform(19.0, 26.0, n), "x": rng.uniform(0, 199, n), "y": rng.uniform(0, 199, n)})
-    inj["detected"] = rng.random(n) < _logistic(np.asarray(inj["mag"]), 23.0, 0.3)
+    inj["detected"] = rng.random(n) < logistic(np.asarray(inj["mag"]), 23.0, 0.3)
     inj["det_mag_auto"] = np.where(inj["detected"], inj["mag"] + 0.03 + 0.08 * rng.standard_normal(n), np.nan)
     inj.write(d / "catalogs" / "point_outcomes.fits")
     mask = np.zeros((200, 200), np.uint8)
@@ -83,7 +45,7 @@ def fake_run(tmp_path_factory):
                                             "stages": {"baseline": {"mag_range": [19.0, 26.0]}}}))
     (d / "summary.json").write_text(json.dumps({"format": 1, "kinds": {"point": {}}}))
     area_all = (200 * 2.0 / 3600) ** 2
-    obs = _mock_catalog(rng, area=area_all)
+    obs = mock_catalog(rng, area=area_all)
     cat = Table({"mag_auto": obs, "xwin": rng.uniform(0, 199, obs.size), "ywin": rng.uniform(0, 199, obs.size)})
     cat.write(d / "detection.fits")
     return d

@@ -14,6 +14,7 @@ from comest_bayes.lf.model import LFModel, LFWarning, build_inputs, effective_ar
 from comest_bayes.bayes.spec import load_spec
 from comest_bayes.bayes.posterior import CompletenessPosterior
 from comest_bayes.recover.transfer import PhotometricTransfer, measure_transfer
+from lf_truths import mock_catalog, sample_powerlaw, synthetic_posterior
 
 
 LN10 = math.log(10.0)
@@ -29,18 +30,6 @@ def _gaussian_transfer(bias, sigma, lo=15.0, hi=32.0):
     cdf = np.tile(norm.cdf(dm, bias, sigma), (2, 1))
     return PhotometricTransfer(nodes=nodes, dm=dm, density=dens, cdf=cdf, finite_fraction=np.ones(2),
                                n_eff=np.full(2, 1e6), bandwidth=np.zeros(2), meta={"true_range": [lo, hi]})
-
-
-def _sample_powerlaw(rng, log_n, slope, area, lo, hi, m_ref=23.0):
-    b = slope * LN10
-    expected = area * 10**log_n * (math.exp(b * (hi - m_ref)) - math.exp(b * (lo - m_ref))) / b
-    n = rng.poisson(expected)
-    u = rng.random(n)
-    return lo + np.log1p(u * (math.exp(b * (hi - lo)) - 1.0)) / b
-
-
-def _logistic(m, m50, w):
-    return 1.0 / (1.0 + np.exp((m - m50) / w))
 
 
 # --------------------------------------------------------------------------- analytic
@@ -89,7 +78,7 @@ def test_effective_area_counts_unmasked_pixels():
 def test_extended_poisson_fit_recovers_a_known_slope():
     rng = np.random.default_rng(12)
     log_n, slope, area = 4.0, 0.3, 0.05
-    mags = _sample_powerlaw(rng, log_n, slope, area, 19.0, 24.0)  # ~2000 sources
+    mags = sample_powerlaw(rng, log_n, slope, area, 19.0, 24.0)  # ~2000 sources
     inputs = build_inputs(mags, area_deg2=area, mag_range=(19.0, 24.0), transfer=None)
     g = inputs.grid.size
     res = fit_counts(inputs, "powerlaw", mode="fixed", f_fixed=(np.ones((1, g)), np.ones(g)), seed=3, min_ess=300)
@@ -102,23 +91,6 @@ def test_extended_poisson_fit_recovers_a_known_slope():
     # fixed interval: N Var(m) ln10^2, Var(m) estimated from the sample itself
     fisher_sd_slope = 1.0 / math.sqrt(len(mags) * np.var(mags) * LN10**2)
     assert summ["slope"]["sd"] == pytest.approx(fisher_sd_slope, rel=0.3)
-
-
-def _synthetic_posterior(m50=23.0, w=0.3, sd_m50=0.08, sd_logw=0.1, nsamples=3000, seed=0):
-    """A CompletenessPosterior (logistic, no spatial term) whose draws are a known Gaussian around (m50, w)."""
-    spec = load_spec("logistic")
-    post = CompletenessPosterior(spec=spec, samples=np.zeros((1, 4)), names=["m50_0", "log_w", "logit_A",
-                                                                             "logit_floor"],
-                                 meta={"sigma_ref": None, "hlr_ref": None, "image_shape": (200, 200),
-                                       "mag_range": [18.0, 27.0], "kind": "point", "quantity": "completeness"},
-                                 footprint=np.array([[100.0, 100.0]]))
-    centre = post.model.inverse_transform({"m50_0": m50, "w": w, "A": 0.995, "floor": 1e-4})
-    rng = np.random.default_rng(seed)
-    draws = np.tile(centre, (nsamples, 1))
-    draws[:, 0] += sd_m50 * rng.standard_normal(nsamples)
-    draws[:, 1] += sd_logw * rng.standard_normal(nsamples)
-    post.samples = draws
-    return post
 
 
 def _depth_posterior(nsamples=400, seed=0):
@@ -193,19 +165,12 @@ def test_joint_depth_nodes_match_the_exact_per_object_likelihood_and_batches_mat
     np.testing.assert_allclose(nodes.log_prob_batch(many), [nodes.log_prob(t) for t in many], rtol=1e-10)
 
 
-def _mock_catalog(rng, *, log_n=4.3, slope=0.3, area=0.0123, m50=23.0, w=0.3, bias=0.03, sigma=0.08):
-    true = _sample_powerlaw(rng, log_n, slope, area, 17.0, 28.0)
-    det = rng.random(true.size) < 0.995 * _logistic(true, m50, w)
-    obs = true[det] + bias + sigma * rng.standard_normal(det.sum())
-    return obs
-
-
 @pytest.mark.slow
 def test_joint_and_marginal_intervals_are_wider_than_fixed():
     rng = np.random.default_rng(21)
     # an uncertain completeness (sd 0.08 mag in m50) and a range reaching into the transition
-    post = _synthetic_posterior(sd_m50=0.08)
-    obs = _mock_catalog(rng)
+    post = synthetic_posterior(sd_m50=0.08)
+    obs = mock_catalog(rng)
     truth_true = rng.uniform(19, 27, 20000)
     tr = measure_transfer(truth_true, truth_true + 0.03 + 0.08 * rng.standard_normal(truth_true.size))
     inputs = build_inputs(obs, area_deg2=0.0123, mag_range=(20.0, 23.5), transfer=tr)
@@ -230,8 +195,8 @@ def test_joint_and_marginal_intervals_are_wider_than_fixed():
 
 def test_range_where_completeness_vanishes_warns_and_stays_finite():
     rng = np.random.default_rng(22)
-    post = _synthetic_posterior(m50=22.0, w=0.2, sd_m50=0.02, sd_logw=0.02)
-    obs = _mock_catalog(rng, m50=22.0, w=0.2)
+    post = synthetic_posterior(m50=22.0, w=0.2, sd_m50=0.02, sd_logw=0.02)
+    obs = mock_catalog(rng, m50=22.0, w=0.2)
     inputs = build_inputs(obs, area_deg2=0.0123, mag_range=(19.0, 26.0), transfer=_gaussian_transfer(0.0, 0.05))
     with pytest.warns(LFWarning, match="completeness at the faint end"):
         res = fit_counts(inputs, "powerlaw", mode="fixed", post=post, seed=2, min_ess=200)
