@@ -29,8 +29,6 @@ from comest_bayes.io import layout
 __all__ = ["RunDirectory", "atomic_path", "file_checksum", "versions", "check_writable", "os_reason",
            "lock_holder"]
 
-RUN_FILE = layout.RUN
-LOCK_FILE = layout.LOCK
 #: Subfolders a run directory may hold besides its own files (the demo's synthetic inputs).
 ALLOWED_FOREIGN = {layout.INPUTS_DIR}
 #: Prefix of every temporary name a run writes; what a killed run leaves is removed on resume.
@@ -146,7 +144,7 @@ def lock_holder(run_dir) -> dict | None:
 
     A lock written on another host cannot be checked and counts as live.
     """
-    holder = _read_lock(Path(run_dir) / LOCK_FILE)
+    holder = _read_lock(Path(run_dir) / layout.LOCK)
     if holder is None:
         return None
     if holder.get("host") != socket.gethostname():
@@ -238,7 +236,7 @@ class RunDirectory:
         if p.exists() and not p.is_dir():
             raise RunDirectoryError(f"--out {str(p)!r} is an existing file, not a directory; choose another --out.")
         self.refuse_if_in_use()
-        run_file = p / RUN_FILE
+        run_file = p / layout.RUN
         if run_file.exists():
             try:
                 state = json.loads(run_file.read_text())
@@ -259,7 +257,7 @@ class RunDirectory:
             self.resumed = True
         elif p.exists():
             foreign = [c.name for c in p.iterdir()
-                       if c.name not in ALLOWED_FOREIGN | {LOCK_FILE} and not c.name.startswith(TMP_PREFIX)]
+                       if c.name not in ALLOWED_FOREIGN | {layout.LOCK} and not c.name.startswith(TMP_PREFIX)]
             if foreign:
                 raise RunDirectoryError(
                     f"--out {str(p)!r} is not empty and is not a comest-bayes run (found {sorted(foreign)[:5]}); "
@@ -274,7 +272,7 @@ class RunDirectory:
             raise RunDirectoryError(
                 f"--out {str(self.path)!r} is in use by another comest-bayes run ({_describe_holder(holder)}). "
                 f"Wait for it to finish or stop it, then rerun the same command to resume; if that process is "
-                f"gone (e.g. on another host), remove {str(self.path / LOCK_FILE)!r}.")
+                f"gone (e.g. on another host), remove {str(self.path / layout.LOCK)!r}.")
 
     @staticmethod
     def _held_by_me(holder: dict) -> bool:
@@ -295,7 +293,7 @@ class RunDirectory:
         return self
 
     def _acquire(self) -> None:
-        lock = self.path / LOCK_FILE
+        lock = self.path / layout.LOCK
         me = {"pid": os.getpid(), "host": socket.gethostname(), "proc_start": _process_start(os.getpid()),
               "started": _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds")}
         tmp = self.path / f"{TMP_PREFIX}lock-{os.getpid()}-{uuid.uuid4().hex[:8]}"
@@ -355,7 +353,7 @@ class RunDirectory:
         if not self._locked:
             return
         self._locked = False
-        lock = self.path / LOCK_FILE
+        lock = self.path / layout.LOCK
         holder = _read_lock(lock)
         if holder is not None and holder.get("pid") == os.getpid() and holder.get("host") == socket.gethostname():
             with contextlib.suppress(OSError):
@@ -399,7 +397,7 @@ class RunDirectory:
         return self._state
 
     def _save(self) -> None:
-        with atomic_path(self.path / RUN_FILE) as tmp:
+        with atomic_path(self.path / layout.RUN) as tmp:
             tmp.write_text(dumps(self._state, indent=2) + "\n")
 
     def update(self, **items) -> None:
