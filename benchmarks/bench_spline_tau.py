@@ -1,0 +1,178 @@
+"""Benchmark: how the spline rung's smoothness scale tau trades bias against variance.
+
+The spline rung (``models/spline_depth.toml``) shrinks its knot log-rates towards the logistic
+with a random-walk prior of scale tau, chosen per fit by the Laplace evidence over
+``selection.TAU_GRID``.  This script fits ``spline_depth`` at every tau of a grid to the same
+outcome tables and scores each choice of tau (every fixed tau, the evidence's choice, the
+evidence-weighted mixture over the grid, and the choice of the Laplace leave-one-out score)
+against a known truth, with Laplace draws (importance-resampled, as the selection uses them):
+
+* ``--scene honesty``: a truth of ``comest_bayes.sim.synthetic`` on the honesty benchmark's scene,
+  with the honesty benchmark's own seeds (so replicates pair with ``bench_honesty.py``); scores the
+  image-average m50, m90 and f at m50 -+ 0.3 mag (bias in units of the posterior sd, 68%
+  coverage, RMSE);
+* ``--scene analytic``: subsets of the analytic white-noise injection pool written by
+  ``bench_speed_accuracy.py --work DIR`` (``DIR/analytic_run``), scoring m50 against the held-out
+  pool's m50 (25.3958 for the pool of the 2026-11 runs; pass ``--ref``).
+
+Example::
+
+    python benchmarks/bench_spline_tau.py --scene honesty --truth two_populations --n 3000 --reps 24
+    python benchmarks/bench_spline_tau.py --scene analytic --work /tmp/sa4/work --n 10000 --reps 10
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import warnings
+from collections import defaultdict
+from pathlib import Path
+
+import numpy as np
+
+HERE = Path(__file__).resolve().parent
+sys.path.insert(0, str(HERE.parent))
+sys.path.insert(0, str(HERE))
+
+TAUS = (0.03, 0.1, 0.3, 1.0, 3.0, 10.0)
+NDRAWS = 400
+
+
+def tau_sweep(model, qfn, *, seed: int, taus=TAUS):
+    """Per tau: the quantities' Laplace draws, the log evidence and the Laplace LOO elpd."""
+    from comest_bayes.bayes import selection as SEL
+    from comest_bayes.bayes.inference import fit_map, laplace
+
+    rows, prev = [], None
+    for tau in taus:
+        model.tau = tau
+        mp = fit_map(model, nstarts=1 if prev is not None else 2, seed=seed, start=prev,
+                     method="newton" if prev is not None else "L-BFGS-B")
+        prev = mp.theta
+        lap = laplace(model, mp.theta)
+        draws, lw, rng = SEL._laplace_draws(model, lap, seed=seed, ndraws=NDRAWS)
+        rows.append({"tau": tau, "q": qfn(model, SEL._resample(draws, lw, NDRAWS, rng)),
+                     "evidence": SEL.laplace_evidence(model, mp.theta, mp.log_prob),
+                     "loo": SEL.loo_laplace(model, mp.theta, lap.cov).elpd})
+    return rows
+
+
+def rules(rows, rng):
+    """Draws of each quantity under each rule for tau: fixed taus, evidence, evidence mixture, LOO."""
+    ev = np.array([r["evidence"] for r in rows])
+    w = np.exp(ev - ev.max())
+    w /= w.sum()
+    one = np.eye(len(rows))
+    mixes = {"evidence": one[int(np.argmax(ev))], "evidence-mixture": w,
+             "loo": one[int(np.argmax([r["loo"] for r in rows]))]}
+    mixes.update({f"tau={r['tau']:g}": one[j] for j, r in enumerate(rows)})
+    out = {}
+    for name, mix in mixes.items():
+        counts = rng.multinomial(NDRAWS, mix)
+        out[name] = {k: np.concatenate([rows[j]["q"][k][:counts[j]] for j in range(len(rows))]) for k in rows[0]["q"]}
+    return out
+
+
+def honesty(a, log):
+    import bench_honesty as H
+    from comest_bayes.bayes.fit import targeted_quantities
+    from comest_bayes.bayes.model import CompletenessModel
+    from comest_bayes.bayes.outcomes import compress_for, covariates_from_outcomes
+    from comest_bayes.bayes.posterior import Footprint, FootprintHistogram
+    from comest_bayes.bayes.spec import load_spec
+    from comest_bayes.seeding import int_seed_for
+    from comest_bayes.sim import synthetic as S
+
+    sp = {**H.SCENE, "seed": int_seed_for(a.seed, "honesty", "scene")}
+    scene = S.make_scene(tuple(sp["shape"]), gradient=sp["gradient"], chip_gap=sp["chip_gap"], seed=sp["seed"])
+    truth = S.get_truth(a.truth)
+    setup = H.truth_setup([a.truth], scene)[a.truth]
+    lo, hi = setup["mag_range"]
+    q = setup["quantities"]
+    spec = load_spec("spline_depth")
+    hist = FootprintHistogram.from_maps(scene.noise, scene.mask, ddepth=0.01, nuv=1)
+    scores = defaultdict(list)
+    for rep in range(a.reps):
+        table = S.draw_outcomes(truth, scene, a.n, mag_range=(lo, hi),
+                                seed=int_seed_for(a.seed, "honesty", a.truth, a.n, rep, "draw"))
+        cov, out, meta = covariates_from_outcomes(table, image_shape=scene.shape)
+        model = CompletenessModel(spec, compress_for(spec, cov, out, meta=meta))
+        qfn = targeted_quantities(Footprint.from_histogram(hist, meta.get("sigma_ref")),
+                                  [q["mag_bright"], q["mag_faint"]], lo, hi)
+        rows = tau_sweep(model, qfn, seed=int_seed_for(a.seed, "honesty", a.truth, a.n, rep, "fit"))
+        for name, qd in rules(rows, np.random.default_rng(rep)).items():
+            scores[name].append(qd)
+        log(f"  replicate {rep}: evidence picks tau {rows[int(np.argmax([r['evidence'] for r in rows]))]['tau']:g}, "
+            f"LOO picks {rows[int(np.argmax([r['loo'] for r in rows]))]['tau']:g}")
+    log(f"{a.truth}, N = {a.n}, {a.reps} replicates: bias / posterior sd, 68% coverage, RMSE x 1000")
+    for name, reps in scores.items():
+        parts = []
+        for k in reps[0]:
+            if q.get(k) is None:
+                continue
+            v = [np.asarray(r[k], float) for r in reps]
+            mean = np.array([np.nanmean(x) for x in v])
+            sd = np.median([np.nanstd(x) for x in v])
+            cov68 = np.mean([np.nanpercentile(x, 16) <= q[k] <= np.nanpercentile(x, 84) for x in v])
+            parts.append(f"{k} {(mean.mean() - q[k]) / sd:+.2f} {cov68:.2f} {1e3 * np.sqrt(np.mean((mean - q[k]) ** 2)):5.1f}")
+        log(f"  {name:<17s} " + " | ".join(parts))
+
+
+def analytic(a, log):
+    from astropy.table import Table
+
+    from comest_bayes.bayes.model import CompletenessModel
+    from comest_bayes.bayes.outcomes import Covariates, compress_for, covariates_from_outcomes
+    from comest_bayes.bayes.spec import load_spec
+
+    o = Table.read(Path(a.work) / "analytic_run" / "catalogs" / "point_outcomes.fits")
+    mag = np.asarray(o["mag"], float)
+    det = np.asarray(o["detected"], bool)
+    idx = np.random.default_rng(7).permutation(np.flatnonzero(np.asarray(o["realization"]) % 3 != 0))
+    spec = load_spec("spline_depth")
+    grid = np.arange(a.ref - 0.2, a.ref + 0.2, 0.0005)
+
+    def m50_draws(model, draws):  # white noise: the depth covariate is ~0 everywhere
+        f = np.asarray(model.prob(draws, Covariates.make(m=grid, depth=np.zeros_like(grid))))
+        return {"m50": np.array([grid[np.argmax(fi < 0.5)] for fi in f])}
+
+    scores = defaultdict(list)
+    for rep in range(a.reps):
+        sub = idx[rep * a.n:(rep + 1) * a.n]
+        cov, out, meta = covariates_from_outcomes({"mag": mag[sub], "detected": det[sub]}, image_shape=None)
+        model = CompletenessModel(spec, compress_for(spec, cov, out, meta=meta))
+        rows = tau_sweep(model, m50_draws, seed=1 + rep)
+        for name, qd in rules(rows, np.random.default_rng(rep)).items():
+            scores[name].append(qd["m50"])
+        log(f"  replicate {rep}: evidence picks tau {rows[int(np.argmax([r['evidence'] for r in rows]))]['tau']:g}, "
+            f"LOO picks {rows[int(np.argmax([r['loo'] for r in rows]))]['tau']:g}")
+    log(f"analytic pool, N = {a.n}, {a.reps} replicates: m50 RMSE and median posterior sd (mmag) "
+        f"against {a.ref}")
+    for name, v in scores.items():
+        mean = np.array([np.mean(x) for x in v])
+        log(f"  {name:<17s} rmse {1e3 * np.sqrt(np.mean((mean - a.ref) ** 2)):5.2f}  "
+            f"sd {1e3 * np.median([np.std(x) for x in v]):5.2f}")
+
+
+def main(argv=None) -> int:
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    p.add_argument("--scene", choices=("honesty", "analytic"), required=True)
+    p.add_argument("--truth", default="two_populations", help="honesty truth name")
+    p.add_argument("--n", type=int, default=3000)
+    p.add_argument("--reps", type=int, default=24)
+    p.add_argument("--seed", type=int, default=12, help="the honesty benchmark's root seed")
+    p.add_argument("--work", default="/tmp/sa4/work", help="bench_speed_accuracy.py --work directory")
+    p.add_argument("--ref", type=float, default=25.3958, help="reference m50 of the analytic pool")
+    a = p.parse_args(argv)
+    from comest_bayes.pipeline import runtime
+
+    runtime.configure(threads=1)
+    warnings.simplefilter("ignore")
+    log = lambda s: print(s, flush=True)  # noqa: E731
+    (honesty if a.scene == "honesty" else analytic)(a, log)
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
