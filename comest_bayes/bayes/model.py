@@ -645,6 +645,24 @@ class CompletenessModel:
         g = self._ncells
         return np.asarray(jac)[:g][:, :, self._free_idx], np.asarray(logs)[:g]
 
+    def _footprint_args(self, depth, u, v, weight) -> tuple:
+        """The footprint cells as the averaging programs take them (depth, size, basis, weight on the device).
+
+        Kept for the last footprint seen: a posterior's summaries average over the same cells hundreds
+        of times (one call per block of draws and magnitudes), and building the basis and copying the
+        arrays each time cost as much as the averages themselves.
+        """
+        key = (id(depth), id(u), id(v), id(weight))
+        cached = getattr(self, "_footprint_cache", None)
+        if cached is not None and cached[0] == key:
+            return cached[2]
+        cov = Covariates.make(np.zeros(len(weight)), depth, u, v)
+        args = (jnp.asarray(cov.depth), jnp.asarray(cov.size), jnp.asarray(self.basis(cov)),
+                jnp.asarray(np.asarray(weight, np.float64)))
+        # the arrays themselves are held so that their ids cannot be reused by other arrays
+        self._footprint_cache = (key, (depth, u, v, weight), args)
+        return args
+
     def average_prob(self, thetas, mags, depth, u, v, weight, *, max_elements: int = 4_000_000) -> np.ndarray:
         """Weighted average of f over covariate cells, per draw: shape (S, M).
 
@@ -662,9 +680,7 @@ class CompletenessModel:
         size = 16 * -(-nm // 16)  # pad the magnitudes to a multiple of 16: few compiled shapes
         mags = jnp.asarray(np.concatenate([mags, np.full(size - nm, mags[-1])]))
         p = len(weight)
-        cov = Covariates.make(np.zeros(p), depth, u, v)
-        args = (jnp.asarray(cov.depth), jnp.asarray(cov.size), jnp.asarray(self.basis(cov)),
-                jnp.asarray(np.asarray(weight, np.float64)))
+        args = self._footprint_args(depth, u, v, weight)
         chunk = int(max(1, min(len(t), max_elements // max(1, p * mags.shape[0]))))
         chunk = 1 << int(math.floor(math.log2(chunk)))  # a power of two: few compiled shapes
         out = np.empty((len(t), nm))
@@ -679,7 +695,6 @@ class CompletenessModel:
     def average_prob_at(self, thetas, mags, depth, u, v, weight) -> np.ndarray:
         """Weighted average of f over covariate cells for draw ``s`` at magnitude ``mags[s]``: shape (S,)."""
         t = self.full(self._thetas(np.atleast_2d(thetas)))
-        cov = Covariates.make(np.zeros(len(weight)), depth, u, v)
         s = len(t)
         size = 16
         while size < s:  # pad the draws to a power of two: few compiled shapes
@@ -687,9 +702,8 @@ class CompletenessModel:
         mags = np.asarray(mags, np.float64)
         tp = np.concatenate([t, np.repeat(t[-1:], size - s, axis=0)])
         mp = np.concatenate([mags, np.full(size - s, mags[-1])])
-        out = _jit_average_at_batch(self._st, jnp.asarray(tp), jnp.asarray(mp), jnp.asarray(cov.depth),
-                                    jnp.asarray(cov.size), jnp.asarray(self.basis(cov)),
-                                    jnp.asarray(np.asarray(weight, np.float64)))
+        out = _jit_average_at_batch(self._st, jnp.asarray(tp), jnp.asarray(mp),
+                                    *self._footprint_args(depth, u, v, weight))
         return np.clip(np.asarray(out)[:s], 0.0, 1.0)
 
     # -- predictions --------------------------------------------------------

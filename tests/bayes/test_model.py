@@ -261,3 +261,27 @@ def test_cell_loglik_reproduces_the_likelihood_in_chunks():
     f = model.prob(thetas, data.cov)
     assert f.shape == (5, data.ncells)
     np.testing.assert_allclose(f, np.exp(cl[..., 0]), rtol=1e-12)
+
+
+def test_footprint_args_are_reused_for_the_same_cells_and_rebuilt_for_new_ones():
+    """The averaging programs get the footprint's device arrays once per footprint, and a new
+    footprint (other arrays) is never served the previous one's cells."""
+    from comest_bayes.bayes.outcomes import Covariates, compress_for
+    from comest_bayes.bayes.model import CompletenessModel
+
+    rng = np.random.default_rng(3)
+    m = rng.uniform(20.0, 26.0, 3000)
+    depth = rng.normal(0.0, 0.2, 3000)
+    det = rng.random(3000) < 1.0 / (1.0 + np.exp((m - 23.0 - depth) / 0.2))
+    model = CompletenessModel("logistic_depth", compress_for("logistic_depth", Covariates.make(m=m, depth=depth), det))
+    theta = np.array([23.0, np.log(0.2), 4.0, -5.0, 1.0])[:model.ndim]
+    d1, z1, w1 = np.array([-0.2, 0.3]), np.zeros(2), np.array([0.5, 0.5])
+    a = model._footprint_args(d1, z1, z1, w1)
+    assert model._footprint_args(d1, z1, z1, w1) is a
+    d2 = np.array([0.4, 0.4])
+    f2 = model.average_prob_at(theta[None, :], np.array([23.2]), d2, z1, z1, w1)
+    f1 = model.average_prob_at(theta[None, :], np.array([23.2]), d1, z1, z1, w1)
+    direct2 = model.prob(theta, Covariates.make(m=np.array([23.2]), depth=np.array([0.4])))
+    direct1 = 0.5 * np.sum(model.prob(theta, Covariates.make(m=np.full(2, 23.2), depth=d1)))
+    np.testing.assert_allclose(f2, direct2, rtol=1e-12)
+    np.testing.assert_allclose(f1, direct1, rtol=1e-12)
