@@ -58,6 +58,44 @@ def tau_sweep(model, qfn, *, seed: int, taus=TAUS):
     return rows
 
 
+def focused_choice(rows, how: str) -> int:
+    """A tau chosen for the targeted quantities, against the roughest tau as the (noisy) unbiased reference.
+
+    The difference of a smoother fit's estimate from the roughest one's estimates the smoother fit's
+    bias, with a noise variance of about ``v_rough - v_smooth`` (the two estimates are nested, so their
+    difference is nearly independent of the smoother one, as in a Hausman test).  ``how = "mse"``: the
+    focused information criterion of Claeskens & Hjort (2003, JASA 98, 900): the tau of least
+    estimated mean squared error, ``v + max(0, d^2 - (v_rough - v))``, summed over the quantities in
+    units of the rough variance.  ``how = "bias"``: the smoothest tau whose every difference is within
+    a third of its own sd plus one sd of the difference's noise.
+    """
+    keys = list(rows[0]["q"])
+    stats = []
+    for r in rows:
+        st = {}
+        for k in keys:
+            v = np.asarray(r["q"][k], float)
+            ok = np.isfinite(v)
+            st[k] = (float(np.mean(v[ok])), float(np.var(v[ok]))) if ok.mean() >= 0.5 else None
+        stats.append(st)
+    ref = stats[-1]
+    scores, passes = [], []
+    for st in stats:
+        total, ok_all = 0.0, True
+        for k in keys:
+            if st[k] is None or ref[k] is None or ref[k][1] <= 0:
+                continue
+            (mu, var), (mu_r, var_r) = st[k], ref[k]
+            noise = max(var_r - var, 0.0)
+            total += (var + max(0.0, (mu - mu_r) ** 2 - noise)) / var_r
+            ok_all &= abs(mu - mu_r) <= np.sqrt(var) / 3.0 + np.sqrt(noise)
+        scores.append(total)
+        passes.append(ok_all)
+    if how == "mse":
+        return int(np.argmin(scores))
+    return next(j for j, ok in enumerate(passes) if ok or j == len(passes) - 1)
+
+
 def rules(rows, rng):
     """Draws of each quantity under each rule for tau: fixed taus, evidence, evidence mixture, LOO."""
     ev = np.array([r["evidence"] for r in rows])
@@ -65,7 +103,8 @@ def rules(rows, rng):
     w /= w.sum()
     one = np.eye(len(rows))
     mixes = {"evidence": one[int(np.argmax(ev))], "evidence-mixture": w,
-             "loo": one[int(np.argmax([r["loo"] for r in rows]))]}
+             "loo": one[int(np.argmax([r["loo"] for r in rows]))],
+             "focused-mse": one[focused_choice(rows, "mse")], "bias-test": one[focused_choice(rows, "bias")]}
     mixes.update({f"tau={r['tau']:g}": one[j] for j, r in enumerate(rows)})
     out = {}
     for name, mix in mixes.items():
@@ -123,7 +162,7 @@ def analytic(a, log):
     from astropy.table import Table
 
     from comest_bayes.bayes.model import CompletenessModel
-    from comest_bayes.bayes.outcomes import Covariates, compress_for, covariates_from_outcomes
+    from comest_bayes.bayes.outcomes import compress_for, covariates_from_outcomes
     from comest_bayes.bayes.spec import load_spec
 
     o = Table.read(Path(a.work) / "analytic_run" / "catalogs" / "point_outcomes.fits")
@@ -131,18 +170,20 @@ def analytic(a, log):
     det = np.asarray(o["detected"], bool)
     idx = np.random.default_rng(7).permutation(np.flatnonzero(np.asarray(o["realization"]) % 3 != 0))
     spec = load_spec("spline_depth")
-    grid = np.arange(a.ref - 0.2, a.ref + 0.2, 0.0005)
 
-    def m50_draws(model, draws):  # white noise: the depth covariate is ~0 everywhere
-        f = np.asarray(model.prob(draws, Covariates.make(m=grid, depth=np.zeros_like(grid))))
-        return {"m50": np.array([grid[np.argmax(fi < 0.5)] for fi in f])}
+    from comest_bayes.bayes.fit import _probe_magnitudes, targeted_quantities
+    from comest_bayes.bayes.posterior import Footprint
+
+    one_cell = Footprint(depth=np.zeros(1), u=np.zeros(1), v=np.zeros(1), weight=np.ones(1), npix=1)
 
     scores = defaultdict(list)
     for rep in range(a.reps):
         sub = idx[rep * a.n:(rep + 1) * a.n]
         cov, out, meta = covariates_from_outcomes({"mag": mag[sub], "detected": det[sub]}, image_shape=None)
         model = CompletenessModel(spec, compress_for(spec, cov, out, meta=meta))
-        rows = tau_sweep(model, m50_draws, seed=1 + rep)
+        # white noise: the depth covariate is ~0 everywhere, one footprint cell at depth 0
+        qfn = targeted_quantities(one_cell, _probe_magnitudes(cov.m, out), float(mag.min()), float(mag.max()))
+        rows = tau_sweep(model, qfn, seed=1 + rep)
         for name, qd in rules(rows, np.random.default_rng(rep)).items():
             scores[name].append(qd["m50"])
         log(f"  replicate {rep}: evidence picks tau {rows[int(np.argmax([r['evidence'] for r in rows]))]['tau']:g}, "
