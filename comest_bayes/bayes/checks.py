@@ -8,7 +8,7 @@ posterior predicts for the same injections and sums the differences into a chi-s
 from __future__ import annotations
 
 import numpy as np
-from scipy import stats
+from scipy import special
 from comest_bayes.bayes.model import padded_size
 
 __all__ = ["shape_check", "P_WARN", "shape_warning"]
@@ -79,7 +79,7 @@ def shape_check(model, draws, mag_edges) -> dict:
     return {
         "chi2": chi2,
         "dof": dof,
-        "p_value": float(stats.chi2.sf(chi2, dof)) if dof else None,
+        "p_value": float(special.chdtrc(dof, chi2)) if dof else None,
         "max_abs_z": float(abs(z[worst])) if dof else None,
         "mag_at_max": float(centres[worst]) if dof else None,
         "bins": [{"mag": float(c), "n": int(round(nn)), "observed": int(round(o)), "expected": float(e),
