@@ -29,7 +29,7 @@ from comest_bayes.inject.profiles import _radius_per_hlr as _sersic_radius_per_h
 
 __all__ = ["TRUTH_COLUMNS", "FLAG_MASKED", "FLAG_OFF_IMAGE", "FLAG_DRAW_ERROR", "MAX_FFT_SIZE",
            "make_truth", "render_truth", "SIZED_KINDS", "SEPARATION_HLR", "STAMP_FLUX_FRACTION",
-           "separation_radius_pix", "stamp_half_pix", "radius_per_hlr", "placement_capacity", "sizing_rule", "local_jacobians", "psf_enclosed_radius_pix", "point_stamp_size", "StampRenderer",
+           "separation_radius_pix", "stamp_half_pix", "radius_per_hlr", "psf_radius_pix", "placement_capacity", "sizing_rule", "local_jacobians", "psf_enclosed_radius_pix", "point_stamp_size", "StampRenderer",
            "KGrid", "fft_size", "MAX_PSF_RADIUS_PIX", "BATCH_CHUNK_ELEMENTS"]
 
 FLAG_MASKED = 1
@@ -229,7 +229,9 @@ def radius_per_hlr(kind: str, params: dict, fraction: float = STAMP_FLUX_FRACTIO
     raise InputError(f"kind {kind!r} has no radius in half-light radii.")
 
 
-def _psf_radius_pix(psf, config: InjectionConfig, fwhm_pix, pixel_scale: float, fraction: float) -> float:
+def psf_radius_pix(psf, config: InjectionConfig, fwhm_pix, pixel_scale: float,
+                   fraction: float = STAMP_FLUX_FRACTION) -> float:
+    """Radius (pixels) holding ``fraction`` of the PSF's light (``psf``, else ``make_psf``; 0 without either)."""
     if psf is None and not fwhm_pix:
         return 0.0
     if psf is None:
@@ -257,19 +259,20 @@ def sizing_rule(kind: str, config: InjectionConfig) -> dict:
 
 
 def placement_capacity(kind: str, *, shape, pixel_scale: float, fwhm_pix: float | None, config: InjectionConfig,
-                       n_try: int, psf=None, seed: int = 0) -> tuple[int, int]:
+                       n_try: int, psf=None, seed: int = 0, r_psf_pix: float | None = None) -> tuple[int, int]:
     """How many sized galaxies of ``kind`` the placement of :func:`make_truth` holds on an image.
 
     Draws ``n_try`` sources of the population (a fixed ``seed``: the answer is
     a property of the image and the configuration) and places them as a
-    realization does.  Returns ``(placed, n_try)``: fewer placed than tried
+    realization does (``r_psf_pix``: the PSF's radius holding
+    :data:`STAMP_FLUX_FRACTION`, :func:`psf_radius_pix`, when known).  Returns ``(placed, n_try)``: fewer placed than tried
     means the placement is full near ``placed``; all placed, that it holds at
     least ``n_try``.
     """
     rng = np.random.default_rng(seed)
     n_try = int(n_try)
     params = draw_parameters(kind, n_try, config=config, mag_range=(20.0, 21.0), rng=rng, pixel_scale=pixel_scale)
-    r_psf = _psf_radius_pix(psf, config, fwhm_pix, pixel_scale, STAMP_FLUX_FRACTION)
+    r_psf = psf_radius_pix(psf, config, fwhm_pix, pixel_scale) if r_psf_pix is None else float(r_psf_pix)
     radius = separation_radius_pix(config, fwhm_pix, pixel_scale, params["hlr_arcsec"])
     half = stamp_half_pix(kind, params, pixel_scale, r_psf)
     with warnings.catch_warnings():
@@ -374,7 +377,7 @@ def make_truth(kind: str, *, shape, mask=None, pixel_scale: float, fwhm_pix: flo
         # sizes before positions: each galaxy keeps its own separation and lies where its stamp fits
         params = draw_parameters(kind, n, config=config, mag_range=mag_range, rng=rng, pixel_scale=pixel_scale,
                                  cosmos=cosmos, population=population, mag_design=mag_design)
-        r_psf = _psf_radius_pix(psf, config, fwhm_pix, pixel_scale, STAMP_FLUX_FRACTION)
+        r_psf = psf_radius_pix(psf, config, fwhm_pix, pixel_scale)
         radius = separation_radius_pix(config, fwhm_pix, pixel_scale, params["hlr_arcsec"])
         half = np.maximum(stamp_half_pix(kind, params, pixel_scale, r_psf), border_pix)
         placement = place_sized_sources(radius, half, shape, rng, mask=mask, method=config.placement)

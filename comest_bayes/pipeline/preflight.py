@@ -16,8 +16,9 @@ import numpy as np
 
 from comest_bayes.errors import ConfigError, InputError
 from comest_bayes.inject.placement import PUBLISHED_DENSITY as _PUBLISHED_DENSITY
-from comest_bayes.inject.render import (min_separation_pix, placement_capacity, psf_enclosed_radius_pix, sizing_rule,
-                                        SIZED_KINDS)
+from comest_bayes.inject.population import draw_parameters
+from comest_bayes.inject.render import (min_separation_pix, placement_capacity, psf_enclosed_radius_pix,
+                                        psf_radius_pix, separation_radius_pix, sizing_rule)
 from comest_bayes.inject.psfmodel import make_psf
 
 __all__ = ["MIN_USABLE_INJECTIONS", "FEW_USABLE_INJECTIONS", "SMALLEST_SEEING_PIX", "PUBLISHED_DENSITY",
@@ -60,14 +61,16 @@ HOLD_FRACTION = 0.5
 #: (galaxies it cannot place are left out of the realization; the ones left out are not a random
 #: draw of the population, so few may be).
 SIZED_PLACED_FRACTION = 0.95
+#: Largest count per realization whose placement :func:`sized_capacity` runs (above: random packing).
+SIMULATED_MAX = 400
 #: Trials per count when measuring what a sized kind's placement holds (fewer for large counts).
 CAPACITY_TRIALS = 20
 
 
-def _placed_fraction(kind, n, *, shape, pixel_scale, fwhm_pix, injection) -> float:
+def _placed_fraction(kind, n, *, shape, pixel_scale, fwhm_pix, injection, r_psf_pix) -> float:
     trials = max(2, min(CAPACITY_TRIALS, int(1000 // max(n, 1))))
     placed = [placement_capacity(kind, shape=shape, pixel_scale=pixel_scale, fwhm_pix=fwhm_pix, config=injection,
-                                 n_try=n, seed=seed)[0] for seed in range(trials)]
+                                 n_try=n, seed=seed, r_psf_pix=r_psf_pix)[0] for seed in range(trials)]
     return float(np.mean(placed)) / n
 
 
@@ -82,10 +85,21 @@ def sized_capacity(kind: str, *, shape, pixel_scale: float, fwhm_pix: float | No
     ``ceil(wanted)`` galaxies are placed with at least
     :data:`SIZED_PLACED_FRACTION` of them kept (``count`` is then
     ``wanted``); else the largest count that keeps that fraction (bisection;
-    at least 1).
+    at least 1).  Above :data:`SIMULATED_MAX` galaxies per realization the
+    count is instead ``HOLD_FRACTION`` of the random packing of discs of the
+    population's mean squared separation radius.
     """
-    opts = dict(shape=shape, pixel_scale=pixel_scale, fwhm_pix=fwhm_pix, injection=injection)
     top = max(1, int(math.ceil(wanted)))
+    if top > SIMULATED_MAX:
+        # many small stamps on a large field: the edges hardly matter, random packing of the discs does
+        params = draw_parameters(kind, 4000, config=injection, mag_range=(20.0, 21.0), rng=np.random.default_rng(0),
+                                 pixel_scale=pixel_scale)
+        r = separation_radius_pix(injection, fwhm_pix, pixel_scale, params["hlr_arcsec"])
+        ny, nx = (int(v) for v in shape)
+        hold = HOLD_FRACTION * JAMMING_COVERAGE * nx * ny / (math.pi * float(np.mean(r * r)))
+        return (float(wanted), False) if hold >= wanted else (float(hold), True)
+    opts = dict(shape=shape, pixel_scale=pixel_scale, fwhm_pix=fwhm_pix, injection=injection,
+                r_psf_pix=psf_radius_pix(None, injection, fwhm_pix, pixel_scale))
     if _placed_fraction(kind, top, **opts) >= SIZED_PLACED_FRACTION:
         return float(wanted), False
     lo, hi = 1, top  # lo: kept (or the floor of 1), hi: not kept
