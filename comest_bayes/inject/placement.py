@@ -18,7 +18,7 @@ from scipy.stats import qmc
 from comest_bayes.errors import InputError
 
 __all__ = ["Placement", "PLACEMENT_METHODS", "PUBLISHED_DENSITY", "placement_area_arcmin2", "draw_count", "place_sources",
-           "pixel_index", "masked_at"]
+           "place_sized_sources", "SIZED_MAX_ROUNDS", "pixel_index", "masked_at"]
 
 PLACEMENT_METHODS = ("uniform", "grid", "halton")
 
@@ -54,6 +54,11 @@ class Placement:
         False when fewer than ``n_requested`` positions could be placed.
     message : str
         Why the placement is incomplete (empty when complete).
+    index : ndarray of int or None
+        For :func:`place_sized_sources`: which of the sources given each
+        position belongs to (ascending; the others could not be placed).
+        None for :func:`place_sources`, whose positions are not tied to
+        sources.
     """
 
     x: np.ndarray
@@ -65,6 +70,7 @@ class Placement:
     border_pix: float
     complete: bool = True
     message: str = ""
+    index: np.ndarray | None = None
 
     @property
     def n(self) -> int:
@@ -276,6 +282,127 @@ def place_sources(n: int, shape, rng: np.random.Generator, *, mask=None, method:
                      masked=masked_at(xs, ys, mask) if xs.size else np.zeros(0, dtype=bool),
                      n_requested=n, method=method, min_sep_pix=r, border_pix=float(border_pix),
                      complete=complete, message=message)
+
+
+#: Rounds of candidates :func:`place_sized_sources` draws (one per unplaced source each round) before it
+#: gives up on the sources still unplaced.
+SIZED_MAX_ROUNDS = 200
+
+
+def place_sized_sources(radius_pix, half_pix, shape, rng: np.random.Generator, *, mask=None,
+                        method: str = "uniform", max_rounds: int = SIZED_MAX_ROUNDS) -> Placement:
+    """Positions of sources of different sizes, each where its stamp lies wholly on the image.
+
+    Source ``i`` is kept ``radius_pix[i] + radius_pix[j]`` pixels or more from
+    every other source ``j`` (per-source separation: two small galaxies may sit
+    closer than two large ones) and its centre pixel at least ``half_pix[i]``
+    pixels from every edge, so that its stamp of ``2 half_pix[i] + 1`` pixels
+    lies on the image.  Dart throwing: each round draws one candidate for every
+    source not yet placed, inside that source's own region, largest radius
+    first; a candidate is kept when it is far enough from the placed sources
+    and from the candidates of larger sources kept in the same round.  After
+    ``max_rounds`` rounds (or when the region of a source is empty: a stamp
+    wider than the image) the sources left are not placed.
+
+    Parameters
+    ----------
+    radius_pix : array_like, shape (n,)
+        Separation radius of each source, pixels (>= 0).
+    half_pix : array_like, shape (n,)
+        Stamp half-size of each source, pixels (>= 0).
+    shape : (ny, nx)
+    rng : numpy.random.Generator
+        The only source of randomness.
+    mask : ndarray of bool, optional
+        Positions on masked pixels are flagged (not avoided), as in :func:`place_sources`.
+    method : {"uniform", "halton"}
+        Candidates uniform at random, or from a scrambled Halton sequence
+        mapped into each source's region.
+    max_rounds : int
+
+    Returns
+    -------
+    Placement
+        ``index`` says which source each position belongs to; ``min_sep_pix``
+        is the smallest pair separation enforced (twice the smallest radius),
+        ``border_pix`` the smallest border.
+
+    Warns
+    -----
+    UserWarning
+        When some sources could not be placed.
+    """
+    if method not in ("uniform", "halton"):
+        raise InputError(f"sized placement supports 'uniform' and 'halton', got {method!r}.")
+    radius = np.asarray(radius_pix, dtype=float).ravel()
+    half = np.asarray(half_pix, dtype=float).ravel()
+    if radius.shape != half.shape:
+        raise InputError(f"radius_pix and half_pix differ in length ({radius.size} and {half.size}).")
+    if radius.size and not (np.all(radius >= 0) and np.all(half >= 0)):
+        raise InputError("separation radii and stamp half-sizes must be >= 0 pixels.")
+    if mask is not None and np.shape(mask) != tuple(shape):
+        raise InputError(f"mask shape {np.shape(mask)} differs from the image shape {tuple(shape)}.")
+    ny, nx = (int(v) for v in shape)
+    n = radius.size
+    # centre pixel ix in [h, nx - 1 - h]  <=>  x in [h - 0.5, nx - 0.5 - h)
+    x0, x1 = half - 0.5, nx - 0.5 - half
+    y0, y1 = half - 0.5, ny - 0.5 - half
+    fits = (x1 > x0) & (y1 > y0)
+    order = np.argsort(-radius, kind="stable")  # largest first: they need the most room
+    order = order[fits[order]]
+    xs = np.full(n, np.nan)
+    ys = np.full(n, np.nan)
+    placed = np.zeros(n, dtype=bool)
+    engine = None
+    if method == "halton":
+        try:
+            engine = qmc.Halton(d=2, scramble=True, rng=rng)
+        except TypeError:  # SciPy < 1.15 names the argument ``seed``
+            engine = qmc.Halton(d=2, scramble=True, seed=rng)
+    r_max = float(radius.max()) if n else 0.0
+    todo = order
+    for _ in range(int(max_rounds)):
+        if todo.size == 0:
+            break
+        u = engine.random(todo.size) if engine is not None else rng.uniform(0.0, 1.0, (todo.size, 2))
+        cx = x0[todo] + (x1[todo] - x0[todo]) * u[:, 0]
+        cy = y0[todo] + (y1[todo] - y0[todo]) * u[:, 1]
+        ok = np.ones(todo.size, dtype=bool)
+        done = np.flatnonzero(placed)
+        if done.size and r_max > 0:
+            tree = cKDTree(np.column_stack([xs[done], ys[done]]))
+            near = tree.query_ball_point(np.column_stack([cx, cy]), radius[todo] + r_max)
+            for k, hits in enumerate(near):
+                if hits:
+                    j = done[hits]
+                    ok[k] = bool(np.all(np.hypot(xs[j] - cx[k], ys[j] - cy[k]) >= radius[todo[k]] + radius[j]))
+        idx = np.flatnonzero(ok)
+        if idx.size > 1 and r_max > 0:
+            pts = np.column_stack([cx[idx], cy[idx]])
+            pairs = cKDTree(pts).query_pairs(2.0 * r_max, output_type="ndarray")
+            if pairs.size:
+                a, b = idx[pairs[:, 0]], idx[pairs[:, 1]]
+                close = np.hypot(cx[a] - cx[b], cy[a] - cy[b]) < radius[todo[a]] + radius[todo[b]]
+                # todo is ordered largest first, so the later of a close pair is the smaller source
+                ok[np.unique(np.maximum(a, b)[close])] = False
+        take = todo[ok]
+        xs[take], ys[take] = cx[ok], cy[ok]
+        placed[take] = True
+        todo = todo[~ok]
+    index = np.flatnonzero(placed)
+    complete = index.size == n
+    message = ""
+    if not complete:
+        wide = int(np.count_nonzero(~fits))
+        why = f"; {wide} of them have stamps wider than the image" if wide else ""
+        message = (f"only {index.size} of {n} galaxies fit, each keeping its own separation radius "
+                   f"({radius.min():.1f}-{radius.max():.1f} px) plus its neighbour's from the others and its whole "
+                   f"stamp on the image{why}; the other {n - index.size} are left out of this realization")
+        warnings.warn(message, UserWarning, stacklevel=2)
+    xs, ys = xs[index], ys[index]
+    return Placement(x=xs, y=ys, masked=masked_at(xs, ys, mask) if xs.size else np.zeros(0, dtype=bool),
+                     n_requested=n, method=method, min_sep_pix=float(2.0 * radius.min()) if n else 0.0,
+                     border_pix=float(half.min()) if n else 0.0, complete=complete, message=message, index=index)
 
 
 def _place_grid(n, region, r, rng):

@@ -19,16 +19,17 @@ from astropy.table import Table
 
 from comest_bayes.config import KINDS, InjectionConfig
 from comest_bayes.errors import ComestError, InputError
-from comest_bayes.inject.placement import PUBLISHED_DENSITY, draw_count, pixel_index, place_sources
+from comest_bayes.inject.placement import PUBLISHED_DENSITY, draw_count, pixel_index, place_sized_sources, place_sources
 from comest_bayes.constants import FWHM_PER_SIGMA
 from comest_bayes.inject.cosmos import CosmosSample
 from comest_bayes.inject.kspace import buldisk_k, buldisk_radius_per_hlr, devaucouleurs_k_table, kspace_quadratic_forms
 from comest_bayes.inject.population import draw_parameters, fit_observed_population
 from comest_bayes.inject.psfmodel import make_psf, psf_half_light_radius_pix
-from comest_bayes.inject.profiles import source_profile
+from comest_bayes.inject.profiles import _radius_per_hlr as _sersic_radius_per_hlr, source_profile
 
 __all__ = ["TRUTH_COLUMNS", "FLAG_MASKED", "FLAG_OFF_IMAGE", "FLAG_DRAW_ERROR", "MAX_FFT_SIZE",
-           "make_truth", "render_truth", "local_jacobians", "psf_enclosed_radius_pix", "point_stamp_size", "StampRenderer",
+           "make_truth", "render_truth", "SIZED_KINDS", "SEPARATION_HLR", "STAMP_FLUX_FRACTION",
+           "separation_radius_pix", "stamp_half_pix", "radius_per_hlr", "psf_radius_pix", "placement_capacity", "sizing_rule", "local_jacobians", "psf_enclosed_radius_pix", "point_stamp_size", "StampRenderer",
            "KGrid", "fft_size", "MAX_PSF_RADIUS_PIX", "BATCH_CHUNK_ELEMENTS"]
 
 FLAG_MASKED = 1
@@ -143,16 +144,33 @@ def _sky_positions(x, y, wcs):
 # --------------------------------------------------------------------------- truth
 
 
+#: Kinds placed source by source (:func:`comest_bayes.inject.placement.place_sized_sources`): each keeps
+#: a separation that follows its own drawn size and lies where its whole stamp fits on the image.
+#: ``cosmos`` and ``observed`` (and any kind with ``injection.placement = "grid"``) keep one separation for
+#: all, :func:`min_separation_pix`.
+SIZED_KINDS = ("buldisk", "sersic")
+#: Separation radius of a sized galaxy in half-light radii: two galaxies are kept at least the sum of
+#: their radii apart.  4 hlr holds 99.1% of an exponential disk's light.  The rule it replaces, one
+#: separation of 8 x the largest half-light radius of the population for all, was set on the demo,
+#: where 4 hlr_max allowed enough blends to hold the bright-end buldisk completeness at 0.99 and
+#: 8 hlr_max gave 1; the pair of the largest galaxies still gets 8 hlr_max.
+SEPARATION_HLR = 4.0
+#: Light fraction the stamps are sized to hold (``render_truth``'s default ``flux_fraction``).
+STAMP_FLUX_FRACTION = 0.995
+
+
 def min_separation_pix(config: InjectionConfig, fwhm_pix: float | None, pixel_scale: float,
                        kind: str = "buldisk") -> float:
-    """Minimum separation between injections in pixels.
+    """One minimum separation between all injections of a kind, pixels.
 
     ``config.min_sep`` in arcsec when positive; when 0 (the default) it is
     automatic: ``4 FWHM`` for point sources, ``max(4 FWHM, 8 hlr_max)`` for galaxies.  With 4 hlr_max, bright bulge+disk
     injections blended with a neighbouring injection often enough to hold the
     bright-end completeness of the demo at 0.99 (the neighbour's light entered
     the Kron aperture and pushed the measured magnitude outside the matching
-    tolerance); at 8 hlr_max the plateau is 1.
+    tolerance); at 8 hlr_max the plateau is 1.  For :data:`SIZED_KINDS` this
+    is the separation of the pair of the largest galaxies only (each pair gets
+    the sum of its :func:`separation_radius_pix`).
     """
     if config.min_sep > 0:
         return config.min_sep / pixel_scale
@@ -160,6 +178,107 @@ def min_separation_pix(config: InjectionConfig, fwhm_pix: float | None, pixel_sc
     if kind == "point":
         return 4.0 * fwhm_arcsec / pixel_scale
     return max(4.0 * fwhm_arcsec, 8.0 * config.hlr_range[1]) / pixel_scale
+
+
+def separation_radius_pix(config: InjectionConfig, fwhm_pix: float | None, pixel_scale: float,
+                          hlr_arcsec) -> np.ndarray:
+    """Per-source separation radius (pixels) of sized galaxies: pairs keep the sum of their radii.
+
+    ``config.min_sep / 2`` when the user set one (every pair then keeps
+    ``min_sep``); else ``max(2 FWHM, SEPARATION_HLR x hlr)``, the point
+    sources' ``2 FWHM`` and the galaxy's own extent (two galaxies of the
+    largest size keep :func:`min_separation_pix` apart, as before).
+    """
+    hlr = np.asarray(hlr_arcsec, dtype=float)
+    if config.min_sep > 0:
+        return np.full(hlr.shape, 0.5 * config.min_sep / pixel_scale)
+    return np.maximum(2.0 * (fwhm_pix or 0.0), SEPARATION_HLR * hlr / pixel_scale)
+
+
+def stamp_half_pix(kind: str, params: dict, pixel_scale: float, r_psf_pix: float,
+                   fraction: float = STAMP_FLUX_FRACTION) -> np.ndarray:
+    """Half-size (pixels) of the stamps :func:`render_truth` gives sources of ``kind``, plus a margin.
+
+    ``ceil(hypot(r_src, r_psf) + 1)`` as in :func:`render_truth` (``r_src``: the
+    major-axis radius holding ``fraction`` of the source's light, at the
+    nominal ``pixel_scale``), plus 1 px and 2% for a WCS whose local scale
+    differs from the nominal one.  ``params``: the columns of
+    :func:`comest_bayes.inject.population.draw_parameters`.
+    """
+    hlr = np.asarray(params["hlr_arcsec"], dtype=float)
+    q = np.asarray(params["q"], dtype=float)
+    per_hlr = radius_per_hlr(kind, params, fraction)
+    r_src = hlr * per_hlr / np.sqrt(np.where(q < 1.0, q, 1.0)) / pixel_scale
+    half = np.maximum(2.0, np.ceil(np.hypot(r_src, r_psf_pix) + 1.0))
+    return np.ceil(1.02 * half) + 1.0
+
+
+def radius_per_hlr(kind: str, params: dict, fraction: float = STAMP_FLUX_FRACTION) -> np.ndarray:
+    """Radius enclosing ``fraction`` of each circular source, in half-light radii (before ``1 / sqrt(q)``).
+
+    The numbers :func:`comest_bayes.inject.profiles.source_profile` and the
+    batched drawing use: ``buldisk`` from ``bulge_fraction``, ``sersic`` and
+    ``observed`` from ``sersic_n``.
+    """
+    if kind == "buldisk":
+        return buldisk_radius_per_hlr(params["bulge_fraction"], fraction)
+    if kind in ("sersic", "observed"):
+        n = np.asarray(params["sersic_n"], dtype=float)
+        uniq, inv = np.unique(n, return_inverse=True)
+        return np.array([_sersic_radius_per_hlr(float(v), fraction) for v in uniq])[inv.ravel()]
+    raise InputError(f"kind {kind!r} has no radius in half-light radii.")
+
+
+def psf_radius_pix(psf, config: InjectionConfig, fwhm_pix, pixel_scale: float,
+                   fraction: float = STAMP_FLUX_FRACTION) -> float:
+    """Radius (pixels) holding ``fraction`` of the PSF's light (``psf``, else ``make_psf``; 0 without either)."""
+    if psf is None and not fwhm_pix:
+        return 0.0
+    if psf is None:
+        psf = make_psf(config, fwhm_pix, pixel_scale)
+    return psf_enclosed_radius_pix(galsim.PixelScale(pixel_scale).toImage(psf), fraction)[0]
+
+
+def _sized(kind: str, config: InjectionConfig) -> bool:
+    return kind in SIZED_KINDS and config.placement != "grid"
+
+
+def sizing_rule(kind: str, config: InjectionConfig) -> dict:
+    """How injections of ``kind`` are spaced and where they may sit (recorded in ``run.json``)."""
+    if not _sized(kind, config):
+        sep = ("injection.min_sep as given" if config.min_sep > 0 else
+               "4 FWHM" if kind == "point" else "max(4 FWHM, 8 x the largest half-light radius of injection.hlr_range)")
+        return {"separation": f"one for all: {sep}", "stamp": f"radius holding {100 * STAMP_FLUX_FRACTION:.1f}% of "
+                "the light, plus 1 px; an injection whose stamp runs off the image is unusable (flag 2)",
+                "per_source": False}
+    sep = ("injection.min_sep as given" if config.min_sep > 0 else
+           f"per source: a pair keeps the sum of the radii max(2 FWHM, {SEPARATION_HLR:g} hlr) of its two galaxies")
+    return {"separation": sep, "stamp": f"per source: the PSF-convolved major-axis radius holding "
+            f"{100 * STAMP_FLUX_FRACTION:.1f}% of the galaxy's light, plus 1 px; each galaxy is placed where its whole "
+            f"stamp lies on the image (its size drawn before its position)", "per_source": True}
+
+
+def placement_capacity(kind: str, *, shape, pixel_scale: float, fwhm_pix: float | None, config: InjectionConfig,
+                       n_try: int, psf=None, seed: int = 0, r_psf_pix: float | None = None) -> tuple[int, int]:
+    """How many sized galaxies of ``kind`` the placement of :func:`make_truth` holds on an image.
+
+    Draws ``n_try`` sources of the population (a fixed ``seed``: the answer is
+    a property of the image and the configuration) and places them as a
+    realization does (``r_psf_pix``: the PSF's radius holding
+    :data:`STAMP_FLUX_FRACTION`, :func:`psf_radius_pix`, when known).  Returns ``(placed, n_try)``: fewer placed than tried
+    means the placement is full near ``placed``; all placed, that it holds at
+    least ``n_try``.
+    """
+    rng = np.random.default_rng(seed)
+    n_try = int(n_try)
+    params = draw_parameters(kind, n_try, config=config, mag_range=(20.0, 21.0), rng=rng, pixel_scale=pixel_scale)
+    r_psf = psf_radius_pix(psf, config, fwhm_pix, pixel_scale) if r_psf_pix is None else float(r_psf_pix)
+    radius = separation_radius_pix(config, fwhm_pix, pixel_scale, params["hlr_arcsec"])
+    half = stamp_half_pix(kind, params, pixel_scale, r_psf)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", UserWarning)
+        placement = place_sized_sources(radius, half, shape, rng, method=config.placement)
+    return placement.n, n_try
 
 
 def make_truth(kind: str, *, shape, mask=None, pixel_scale: float, fwhm_pix: float | None,
@@ -253,10 +372,22 @@ def make_truth(kind: str, *, shape, mask=None, pixel_scale: float, fwhm_pix: flo
 
     if n is None:
         n = draw_count(config.density or PUBLISHED_DENSITY, shape, pixel_scale, rng, border_pix=border_pix)
-    placement = place_sources(n, shape, rng, mask=mask, method=config.placement,
-                              min_sep_pix=min_separation_pix(config, fwhm_pix, pixel_scale, kind), border_pix=border_pix)
-    params = draw_parameters(kind, placement.n, config=config, mag_range=mag_range, rng=rng,
-                             pixel_scale=pixel_scale, cosmos=cosmos, population=population, mag_design=mag_design)
+    sized = _sized(kind, config)
+    if sized:
+        # sizes before positions: each galaxy keeps its own separation and lies where its stamp fits
+        params = draw_parameters(kind, n, config=config, mag_range=mag_range, rng=rng, pixel_scale=pixel_scale,
+                                 cosmos=cosmos, population=population, mag_design=mag_design)
+        r_psf = psf_radius_pix(psf, config, fwhm_pix, pixel_scale)
+        radius = separation_radius_pix(config, fwhm_pix, pixel_scale, params["hlr_arcsec"])
+        half = np.maximum(stamp_half_pix(kind, params, pixel_scale, r_psf), border_pix)
+        placement = place_sized_sources(radius, half, shape, rng, mask=mask, method=config.placement)
+        params = {k: v[placement.index] for k, v in params.items()}
+    else:
+        placement = place_sources(n, shape, rng, mask=mask, method=config.placement,
+                                  min_sep_pix=min_separation_pix(config, fwhm_pix, pixel_scale, kind),
+                                  border_pix=border_pix)
+        params = draw_parameters(kind, placement.n, config=config, mag_range=mag_range, rng=rng,
+                                 pixel_scale=pixel_scale, cosmos=cosmos, population=population, mag_design=mag_design)
     m = placement.n
     ra, dec = _sky_positions(placement.x, placement.y, wcs)
     cols = {
@@ -284,7 +415,14 @@ def make_truth(kind: str, *, shape, mask=None, pixel_scale: float, fwhm_pix: flo
         "mag_bright": float(mag_range[0]), "mag_faint": float(mag_range[1]), "zeropoint": float(zeropoint),
         "pixel_scale": float(pixel_scale), "fwhm_pix": float(fwhm_pix) if fwhm_pix else 0.0,
         "density": float(config.density or PUBLISHED_DENSITY), "psf": config.psf,
+        "per_source_separation": bool(sized),
     }
+    if sized:
+        meta.update({"n_unplaced": int(n - m),
+                     "sep_radius_pix_min": float(radius.min()) if n else 0.0,
+                     "sep_radius_pix_max": float(radius.max()) if n else 0.0,
+                     "stamp_half_pix_min": float(half.min()) if n else 0.0,
+                     "stamp_half_pix_max": float(half.max()) if n else 0.0})
     if population is not None:
         meta.update(population.meta())
     table = Table(meta=meta)

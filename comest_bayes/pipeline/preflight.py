@@ -16,7 +16,9 @@ import numpy as np
 
 from comest_bayes.errors import ConfigError, InputError
 from comest_bayes.inject.placement import PUBLISHED_DENSITY as _PUBLISHED_DENSITY
-from comest_bayes.inject.render import min_separation_pix, psf_enclosed_radius_pix
+from comest_bayes.inject.population import draw_parameters
+from comest_bayes.inject.render import (min_separation_pix, placement_capacity, psf_enclosed_radius_pix,
+                                        psf_radius_pix, separation_radius_pix, sizing_rule)
 from comest_bayes.inject.psfmodel import make_psf
 
 __all__ = ["MIN_USABLE_INJECTIONS", "FEW_USABLE_INJECTIONS", "SMALLEST_SEEING_PIX", "PUBLISHED_DENSITY",
@@ -55,6 +57,59 @@ PER_BACKGROUND_MESH = 0.25
 #: Fraction of the random-packing count at the minimum separation (``JAMMING_COVERAGE``) the automatic
 #: density fills at most: dart throwing still places every injection there without stalling.
 HOLD_FRACTION = 0.5
+#: Sized kinds: the placement must keep at least this fraction of the galaxies asked for, on average
+#: (galaxies it cannot place are left out of the realization; the ones left out are not a random
+#: draw of the population, so few may be).
+SIZED_PLACED_FRACTION = 0.95
+#: Largest count per realization whose placement :func:`sized_capacity` runs (above: random packing).
+SIMULATED_MAX = 400
+#: Trials per count when measuring what a sized kind's placement holds (fewer for large counts).
+CAPACITY_TRIALS = 20
+
+
+def _placed_fraction(kind, n, *, shape, pixel_scale, fwhm_pix, injection, r_psf_pix) -> float:
+    trials = max(2, min(CAPACITY_TRIALS, int(1000 // max(n, 1))))
+    placed = [placement_capacity(kind, shape=shape, pixel_scale=pixel_scale, fwhm_pix=fwhm_pix, config=injection,
+                                 n_try=n, seed=seed, r_psf_pix=r_psf_pix)[0] for seed in range(trials)]
+    return float(np.mean(placed)) / n
+
+
+def sized_capacity(kind: str, *, shape, pixel_scale: float, fwhm_pix: float | None, injection,
+                   wanted: float) -> tuple[float, bool]:
+    """What the placement of a sized kind (:data:`comest_bayes.inject.render.SIZED_KINDS`) holds per realization.
+
+    Each galaxy keeps its own separation and its whole stamp on the image, so
+    what fits depends on the image's shape and the drawn sizes: the placement
+    of a realization is run on the image (fixed seeds, :data:`CAPACITY_TRIALS`
+    trials per count).  Returns ``(count, full)``: ``full`` False when
+    ``ceil(wanted)`` galaxies are placed with at least
+    :data:`SIZED_PLACED_FRACTION` of them kept (``count`` is then
+    ``wanted``); else the largest count that keeps that fraction (bisection;
+    at least 1).  Above :data:`SIMULATED_MAX` galaxies per realization the
+    count is instead ``HOLD_FRACTION`` of the random packing of discs of the
+    population's mean squared separation radius.
+    """
+    top = max(1, int(math.ceil(wanted)))
+    if top > SIMULATED_MAX:
+        # many small stamps on a large field: the edges hardly matter, random packing of the discs does
+        params = draw_parameters(kind, 4000, config=injection, mag_range=(20.0, 21.0), rng=np.random.default_rng(0),
+                                 pixel_scale=pixel_scale)
+        r = separation_radius_pix(injection, fwhm_pix, pixel_scale, params["hlr_arcsec"])
+        ny, nx = (int(v) for v in shape)
+        hold = HOLD_FRACTION * JAMMING_COVERAGE * nx * ny / (math.pi * float(np.mean(r * r)))
+        return (float(wanted), False) if hold >= wanted else (float(hold), True)
+    opts = dict(shape=shape, pixel_scale=pixel_scale, fwhm_pix=fwhm_pix, injection=injection,
+                r_psf_pix=psf_radius_pix(None, injection, fwhm_pix, pixel_scale))
+    if _placed_fraction(kind, top, **opts) >= SIZED_PLACED_FRACTION:
+        return float(wanted), False
+    lo, hi = 1, top  # lo: kept (or the floor of 1), hi: not kept
+    while hi - lo > 1:
+        mid = (lo + hi) // 2
+        if _placed_fraction(kind, mid, **opts) >= SIZED_PLACED_FRACTION:
+            lo = mid
+        else:
+            hi = mid
+    return float(lo), True
 
 
 @dataclass(frozen=True)
@@ -81,6 +136,10 @@ class DensityChoice:
         (``PER_BACKGROUND_MESH`` per mesh) and what the placement holds (inf without a minimum
         separation), per realization.
     min_sep_pix : float
+        The separation of all pairs; for per-source separations (``sizing["per_source"]``) that of
+        the pair of the largest galaxies.
+    sizing : dict
+        The separation and stamp rules (:func:`comest_bayes.inject.render.sizing_rule`).
     """
 
     kind: str
@@ -95,6 +154,7 @@ class DensityChoice:
     mesh_cap: float
     hold_cap: float
     min_sep_pix: float
+    sizing: dict | None = None
 
     def to_dict(self) -> dict:
         d = dict(self.__dict__)
@@ -114,7 +174,10 @@ def choose_density(kind: str, *, shape, pixel_scale: float, fwhm_pix: float | No
       meshes of the detection run on each realization, biasing m50 bright;
     * ``hold_cap = HOLD_FRACTION x JAMMING_COVERAGE x npix / (pi r^2 / 4)``, ``r`` the kind's
       minimum separation (:func:`comest_bayes.inject.render.min_separation_pix`): what the placement
-      holds without the injections blending with each other;
+      holds without the injections blending with each other; for the kinds placed source by source
+      (:data:`comest_bayes.inject.render.SIZED_KINDS`: each galaxy keeps its own separation and its
+      whole stamp on the image) the largest count their placement keeps on this image
+      (:func:`sized_capacity`);
     * the count is ``hold_cap`` when ``published`` exceeds it (coarse pixels, wide separations);
       else ``published`` when it reaches ``TARGET_PER_REALIZATION`` (large images: the published
       density unchanged); else ``max(published, min(TARGET_PER_REALIZATION, mesh_cap, hold_cap))``
@@ -127,16 +190,25 @@ def choose_density(kind: str, *, shape, pixel_scale: float, fwhm_pix: float | No
     npix = nx * ny
     area = npix * (pixel_scale / 60.0) ** 2
     r = float(min_separation_pix(injection, fwhm_pix, pixel_scale, kind))
-    hold = HOLD_FRACTION * JAMMING_COVERAGE * npix / (math.pi * r * r / 4.0) if r > 0 else math.inf
     published = PUBLISHED_DENSITY * area
     mesh = PER_BACKGROUND_MESH * npix / float(back_size) ** 2
+    sizing = sizing_rule(kind, injection)
+    if sizing["per_source"]:
+        wanted = injection.density * area if injection.density > 0 else max(published, min(TARGET_PER_REALIZATION, mesh))
+        hold, full = sized_capacity(kind, shape=(ny, nx), pixel_scale=pixel_scale, fwhm_pix=fwhm_pix,
+                                    injection=injection, wanted=wanted)
+        hold = hold if full else math.inf
+        held = (f"{hold:.0f} held by the placement (each galaxy kept its own separation and its whole stamp on the "
+                f"image; at most {100 * (1 - SIZED_PLACED_FRACTION):.0f}% left out)") if full else ""
+    else:
+        hold = HOLD_FRACTION * JAMMING_COVERAGE * npix / (math.pi * r * r / 4.0) if r > 0 else math.inf
+        held = f"{hold:.1f} held by the placement at the {r:.1f} px minimum separation" if r > 0 else ""
     facts = dict(kind=kind, area_arcmin2=area, published=published, target=TARGET_PER_REALIZATION,
-                 mesh_cap=mesh, hold_cap=hold, min_sep_pix=r)
+                 mesh_cap=mesh, hold_cap=hold, min_sep_pix=r, sizing=sizing)
     if injection.density > 0:
         n = injection.density * area
         return DensityChoice(density=float(injection.density), per_realization=n, source="user", rule="user",
                              reason=f"{injection.density:g} per arcmin^2 as given ({n:.1f} per realization)", **facts)
-    held = f"{hold:.1f} held by the placement at the {r:.1f} px minimum separation" if r > 0 else ""
     if published > hold:
         n, rule = hold, "placement cap"
         why = (f"the published {PUBLISHED_DENSITY:g} per arcmin^2 would ask for {published:.0f} per realization, "
@@ -195,15 +267,19 @@ class InjectionBudget:
     requested : float
         Mean injections asked for per realization (density x area).
     placeable : float
-        How many fit at the minimum separation (inf without one).
+        How many fit at the minimum separation (inf without one); for sized kinds the most their
+        placement holds (:func:`sized_capacity`; inf when ``requested`` fits).
     min_sep_pix : float
     stamp_half : int
         Half-size (pixels) of a point-source stamp (the smallest stamp).
     inner_fraction : float
         Fraction of the image's pixels that are unmasked and at least
-        ``stamp_half`` from every edge.
+        ``stamp_half`` from every edge (sized kinds, placed where their stamps
+        fit: the unmasked fraction).
     usable_per_realization : float
         Expected usable injections per realization (an upper bound).
+    sized : bool
+        Placed source by source, each where its own stamp fits (see ``placeable``, ``inner_fraction``).
     """
 
     kind: str
@@ -214,6 +290,7 @@ class InjectionBudget:
     stamp_half: int
     inner_fraction: float
     usable_per_realization: float
+    sized: bool = False
 
     @property
     def placed(self) -> float:
@@ -252,12 +329,20 @@ def injection_budget(kind: str, *, shape, mask, pixel_scale: float, fwhm_pix: fl
     area = npix * (pixel_scale / 60.0) ** 2
     requested = density * area
     r = float(min_separation_pix(injection, fwhm_pix, pixel_scale, kind))
-    placeable = JAMMING_COVERAGE * npix / (math.pi * r * r / 4.0) if r > 0 else math.inf
     half = stamp_half if stamp_half is not None else stamp_half_size(injection, fwhm_pix, pixel_scale)
     mask = np.zeros((ny, nx), bool) if mask is None else np.asarray(mask, bool)
-    inner = _inner_unmasked(mask, half) / npix
+    sized = bool(sizing_rule(kind, injection)["per_source"])
+    if sized:
+        # placed where their stamps fit: what the placement reaches, every one on the image
+        hold, full = sized_capacity(kind, shape=(ny, nx), pixel_scale=pixel_scale, fwhm_pix=fwhm_pix,
+                                    injection=injection, wanted=requested)
+        placeable = hold if full else math.inf
+        inner = float(np.count_nonzero(~mask)) / npix
+    else:
+        placeable = JAMMING_COVERAGE * npix / (math.pi * r * r / 4.0) if r > 0 else math.inf
+        inner = _inner_unmasked(mask, half) / npix
     return InjectionBudget(kind=kind, density=density, requested=requested, placeable=placeable, min_sep_pix=r, stamp_half=half,
-                           inner_fraction=inner, usable_per_realization=min(requested, placeable) * inner)
+                           inner_fraction=inner, usable_per_realization=min(requested, placeable) * inner, sized=sized)
 
 
 def check_injection_count(*, shape, mask, pixel_scale: float, fwhm_pix: float | None, injection,
@@ -330,7 +415,10 @@ def check_injection_count(*, shape, mask, pixel_scale: float, fwhm_pix: float | 
                 f"no injection can be usable on this {nx}x{ny} image: {stamp}, and every pixel at least {half} px "
                 f"from the edges, where a stamp fits, is masked. Check the mask and --mask-bits.")
         cap = ""
-        if b.placeable < b.requested:
+        if b.placeable < b.requested and b.sized:
+            cap = (f"; only about {b.placeable:.0f} fit, each galaxy kept its own separation and its whole stamp "
+                   f"on the image")
+        elif b.placeable < b.requested:
             cap = (f"; only about {b.placeable:.0f} fit at the minimum separation of {b.min_sep_pix:.1f} px, "
                    f"so lower injection.min_sep")
         raise InputError(
@@ -350,12 +438,18 @@ def budget_warnings(budgets, nsims: int) -> list[str]:
         total = b.usable_per_realization * int(nsims)
         if total >= FEW_USABLE_INJECTIONS:
             continue
-        held = (f"; only about {b.placeable:.1f} fit per realization at the {b.min_sep_pix:.0f} px minimum "
-                f"separation" if b.placeable < b.requested else "")
+        if b.sized:
+            where = (f"each placed where its whole stamp lies on the image, {100 * b.inner_fraction:.0f}% of the "
+                     f"pixels unmasked")
+            held = ""
+        else:
+            where = (f"{100 * b.inner_fraction:.0f}% of the pixels lie far enough from the edges for a point-source "
+                     f"stamp, fewer for a galaxy's")
+            held = (f"; only about {b.placeable:.1f} fit per realization at the {b.min_sep_pix:.0f} px minimum "
+                    f"separation" if b.placeable < b.requested else "")
         need = math.ceil(FEW_USABLE_INJECTIONS / max(b.usable_per_realization, 1e-9))
         out.append(f"only about {total:.0f} usable {b.kind} injections expected over {nsims} realization(s) "
-                   f"({b.placed:.1f} per realization{held}; {100 * b.inner_fraction:.0f}% of the pixels lie far "
-                   f"enough from the edges for a point-source stamp, fewer for a galaxy's): its completeness will "
+                   f"({b.placed:.1f} per realization{held}; {where}): its completeness will "
                    f"be loose. About {need} realizations would give {FEW_USABLE_INJECTIONS} (--nsims).")
     return out
 

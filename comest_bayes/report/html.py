@@ -279,6 +279,9 @@ def _facts_section(r: _Report) -> None:
                      f"{choice.get('density', float('nan')):.3g} per arcmin^2, "
                      f"{choice.get('per_realization', float('nan')):.0f} per realization",
                      choice.get("reason") or choice.get("source", "")])
+        sizing = choice.get("sizing") or {}
+        if sizing:
+            rows.append([f"separation and stamps ({kind})", sizing.get("separation", ""), sizing.get("stamp", "")])
     det = (run.state.get("stages", {}).get("detect") or {})
     if det:
         cfg = run.config.detection

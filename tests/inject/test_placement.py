@@ -147,3 +147,51 @@ def test_an_unresolved_automatic_density_draws_at_the_published_density():
     mean = 15.0 * (600 * 0.5 / 60) ** 2  # 375
     # 40 Poisson draws of mean 375: the sample mean has sd 3.1; 4 sd
     assert abs(np.mean(counts) - mean) < 4 * np.sqrt(mean / 40)
+
+
+# --------------------------------------------------------------------------- sized placement
+# comest_bayes.inject.placement.place_sized_sources: each pair keeps the sum of its radii, each centre its
+# stamp's half-size from the edges.
+
+def test_sized_placement_keeps_each_pair_the_sum_of_its_radii_and_every_stamp_on_the_image():
+    from comest_bayes.inject.placement import place_sized_sources
+
+    rng = np.random.default_rng(5)
+    n = 60
+    radius = np.where(np.arange(n) < 10, 40.0, 8.0)  # 10 large galaxies, 50 small ones
+    half = np.where(np.arange(n) < 10, 60.0, 15.0)
+    p = place_sized_sources(radius, half, (400, 500), rng)
+    assert p.complete and p.n == n and np.array_equal(p.index, np.arange(n))
+    r = radius[p.index]
+    d = np.hypot(p.x[:, None] - p.x[None, :], p.y[:, None] - p.y[None, :])
+    need = r[:, None] + r[None, :]
+    off = ~np.eye(n, dtype=bool)
+    assert np.all(d[off] >= need[off])
+    # small pairs sit closer than the 80 px two large ones need: the separation is not one for all
+    small = r < 10
+    assert np.min(d[np.ix_(small, small)][~np.eye(small.sum(), dtype=bool)]) < 80.0
+    # every stamp's pixels [ix - h, ix + h] lie on the image
+    ix, iy = np.floor(p.x + 0.5), np.floor(p.y + 0.5)
+    h = half[p.index]
+    assert np.all(ix - h >= 0) and np.all(ix + h <= 499) and np.all(iy - h >= 0) and np.all(iy + h <= 399)
+
+
+def test_sized_placement_leaves_out_what_cannot_fit_and_says_so():
+    from comest_bayes.inject.placement import place_sized_sources
+
+    # 200x200: a stamp of half-size 120 cannot lie on it; two of radius 60 with stamps of half-size 70 need
+    # 120 px between centres confined to a 60x60 square (diagonal 85 px): only one fits
+    with pytest.warns(UserWarning, match="only 1 of 3 galaxies fit"):
+        p = place_sized_sources([60.0, 60.0, 10.0], [70.0, 70.0, 120.0], (200, 200), np.random.default_rng(0))
+    assert not p.complete and p.n == 1 and p.index[0] in (0, 1)
+    assert "stamps wider than the image" in p.message
+
+
+def test_sized_placement_is_reproducible():
+    from comest_bayes.inject.placement import place_sized_sources
+
+    rad, half = np.linspace(3, 12, 40), np.linspace(5, 20, 40)
+    a = place_sized_sources(rad, half, (300, 300), np.random.default_rng(2))
+    b = place_sized_sources(rad, half, (300, 300), np.random.default_rng(2))
+    c = place_sized_sources(rad, half, (300, 300), np.random.default_rng(3))
+    assert np.array_equal(a.x, b.x) and np.array_equal(a.y, b.y) and not np.array_equal(a.x, c.x)

@@ -24,9 +24,14 @@ FWHM = 3.5  # pixels
 
 
 def truth_for(kind, xs, ys, mags, *, shape=(128, 128), cosmos=None, **columns):
-    """A truth table with the given sources (drawn with make_truth, then overridden)."""
+    """A truth table with the given sources (drawn with make_truth, then overridden).
+
+    Drawn on a canvas large enough for every galaxy's stamp (galaxies are placed where their stamps
+    fit; the positions are replaced anyway).
+    """
     cfg = InjectionConfig(min_sep=0.0)
-    t = make_truth(kind, shape=shape, pixel_scale=SCALE, fwhm_pix=FWHM, config=cfg, mag_range=(20.0, 21.0),
+    canvas = (max(shape[0], 2048), max(shape[1], 2048))
+    t = make_truth(kind, shape=canvas, pixel_scale=SCALE, fwhm_pix=FWHM, config=cfg, mag_range=(20.0, 21.0),
                    rng=np.random.default_rng(0), zeropoint=ZP, n=len(xs), cosmos=cosmos)
     t["x"] = np.asarray(xs, dtype=float)
     t["y"] = np.asarray(ys, dtype=float)
@@ -540,3 +545,32 @@ def test_batched_photon_noise_is_reproducible_and_has_the_right_variance():
     # (relative error of a variance from 40 draws is sqrt(2/40) = 22% per pixel, averaged over the
     # ~100 bright pixels that carry the sum: ~3%); 10% tolerance
     assert var.sum() == pytest.approx(clean.sum() / 2.0, rel=0.1)
+
+
+def test_galaxies_on_a_fine_pixel_field_keep_their_sizes_and_their_stamps_on_the_image():
+    # 640x640 at 0.03"/px (a JWST-like field): galaxies of hlr 0.35-0.75" (ground-based sizes) stay that
+    # size in arcsec; each keeps max(2 FWHM, 4 hlr) from its neighbour's and its whole stamp on the image,
+    # so none is flagged off the image.
+    from comest_bayes.inject.render import SEPARATION_HLR
+
+    cfg = InjectionConfig(kinds=("buldisk",))
+    psf = make_psf(cfg, 2.5, 0.03)
+    t = make_truth("buldisk", shape=(640, 640), pixel_scale=0.03, fwhm_pix=2.5, config=cfg, psf=psf,
+                   mag_range=(22.0, 26.0), rng=np.random.default_rng(1), zeropoint=ZP, n=3)
+    assert t.meta["per_source_separation"] and t.meta["n_unplaced"] == 3 - len(t)
+    hlr = np.asarray(t["hlr_arcsec"])
+    assert np.all((hlr >= 0.35) & (hlr <= 0.75))
+    x, y = np.asarray(t["x"]), np.asarray(t["y"])
+    for i in range(len(t)):
+        for j in range(i):
+            assert np.hypot(x[i] - x[j], y[i] - y[j]) >= SEPARATION_HLR * (hlr[i] + hlr[j]) / 0.03
+    _, out = render_truth(np.zeros((640, 640), np.float32), t, psf=psf, config=cfg, pixel_scale=0.03, rng_seed=0)
+    assert not np.any(np.asarray(out["flag"]) & FLAG_OFF_IMAGE)
+
+
+def test_point_sources_keep_the_one_separation_placement():
+    # point sources are drawn positions first, as before (the demo's point-source numbers do not move)
+    cfg = InjectionConfig(kinds=("point",))
+    t = make_truth("point", shape=(200, 200), pixel_scale=0.2, fwhm_pix=4.0, config=cfg,
+                   mag_range=(22.0, 26.0), rng=np.random.default_rng(1), zeropoint=ZP, n=20)
+    assert not t.meta["per_source_separation"] and t.meta["min_sep_pix"] == pytest.approx(16.0)
