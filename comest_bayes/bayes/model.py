@@ -813,8 +813,14 @@ class CompletenessModel:
         :meth:`initial` puts them (slopes at their prior means, a straight
         spline, ``nu = 1``, a flat field).
         """
-        start = self.initial()
         other = dict(zip(list(names), np.asarray(theta, dtype=np.float64)))
+        # the grid search of initial() only places m50_0, log_w, logit_A and logit_floor: when the other
+        # rung supplies every one of them that this model has, its defaults suffice (same start, no search)
+        searched = [n for n in ("m50_0", "log_w", "logit_A", "logit_floor") if n in self.names]
+        if all(n in other and np.isfinite(other[n]) for n in searched):
+            start = self._grid_initial(search=False)
+        else:
+            start = self.initial()
         for i, name in enumerate(self.names):
             if name in other and np.isfinite(other[name]):
                 start[i] = other[name]
@@ -835,10 +841,12 @@ class CompletenessModel:
             self._initial = self._grid_initial()
         return self._initial.copy()
 
-    def _grid_initial(self) -> np.ndarray:
+    def _grid_initial(self, search: bool = True) -> np.ndarray:
         data = self.data
         m = data.cov.m
         lo, hi = float(m.min()), float(m.max())
+        if not search:  # the defaults of every parameter the grid does not place (see warm_start)
+            return self._start_from((0.5 * (lo + hi), 0.2, 0.97, 0.01))
         nbins = int(min(400, max(1, math.ceil((hi - lo) / 0.02))))
         edges = np.linspace(lo, hi + 1e-9, nbins + 1)
         which = np.clip(np.searchsorted(edges, m, side="right") - 1, 0, nbins - 1)
@@ -880,6 +888,12 @@ class CompletenessModel:
                         best = (m50_grid[idx[0]], w_grid[idx[1]], a, a * r)
         if best is None:  # pragma: no cover - every grid point non-finite cannot happen with clipped f
             best = (0.5 * (lo + hi), 0.2, 0.97, 0.01)
+        return self._start_from(best)
+
+    def _start_from(self, best) -> np.ndarray:
+        """The starting theta for grid values ``best = (m50, w, A, floor)``; other parameters at their defaults."""
+        pa = self._prior_arrays[0]
+        fn = self.full_names
         m50, w, a, fl = best
         params = {"m50_0": m50, "w": w, "A": min(a, 0.995), "floor": fl}
         for name in self.names:

@@ -285,3 +285,26 @@ def test_footprint_args_are_reused_for_the_same_cells_and_rebuilt_for_new_ones()
     direct1 = 0.5 * np.sum(model.prob(theta, Covariates.make(m=np.full(2, 23.2), depth=d1)))
     np.testing.assert_allclose(f2, direct2, rtol=1e-12)
     np.testing.assert_allclose(f1, direct1, rtol=1e-12)
+
+
+def test_warm_start_without_the_grid_search_equals_the_one_with_it():
+    """A rung warm-started from another that supplies m50_0, log_w and the plateau/floor logits starts
+    where the grid-searched start overridden by them would (the search is skipped, not changed)."""
+    rng = np.random.default_rng(5)
+    m = rng.uniform(20.0, 26.0, 2000)
+    depth = rng.normal(0.0, 0.2, 2000)
+    det = rng.random(2000) < 0.97 / (1.0 + np.exp((m - 23.0 - depth) / 0.2))
+    data = compress_for("spline_depth", Covariates.make(m=m, depth=depth), det)
+    model = CompletenessModel("spline_depth", data)
+    names = ["m50_0", "log_w", "logit_A", "logit_floor"]
+    theta = np.array([23.1, math.log(0.25), 3.0, -4.0])
+    fast = model.warm_start(names, theta)
+    slow = model.initial()
+    for i, name in enumerate(model.names):
+        if name in names:
+            slow[i] = theta[names.index(name)]
+    np.testing.assert_array_equal(fast, slow)
+    # a rung that lacks one of them still gets the searched start for it
+    partial = model.warm_start(names[:2], theta[:2])
+    j = model.names.index("logit_A")
+    assert partial[j] == model.initial()[j]
