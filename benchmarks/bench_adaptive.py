@@ -50,8 +50,9 @@ Real outcomes (``--pool RUN_DIR [RUN_DIR ...]``)
 ------------------------------------------------
 Instead of synthetic draws, both methods take the real outcomes of a finished
 injection run whose magnitudes are uniform (``--build-pool analytic|demo``
-makes one with :mod:`bench_speed_accuracy`'s scenes; several runs of one
-image may be pooled).  Because the pool is uniform in magnitude and a design
+makes one with :mod:`bench_speed_accuracy`'s scenes, ``--build-range auto``
+the analytic one over the range a default run draws instead of the fixed
+24.0-26.8; several runs of one image may be pooled).  Because the pool is uniform in magnitude and a design
 is uniform within each of its bins, taking for every designed magnitude an
 unused pool injection from the same design bin (:class:`PoolSampler`) gives
 injections distributed exactly as the design asks, each with its real
@@ -61,7 +62,8 @@ uniform method takes disjoint slices at each N (at most 200).  A third of
 the realizations (0, 3, 6, ...) is held out as the reference (binned at
 0.05 mag; its own noise is estimated by a bootstrap over realizations and
 taken out of the RMSEs in ``debiased``), and ``--closed-form`` adds the
-analytic scene's exact curve.  ``--regions`` also scores both methods on
+analytic scene's exact curve (``--primary`` chooses the reference of the
+coverage figures).  ``--regions`` also scores both methods on
 the footprint's deeper and shallower halves.  CPU seconds count the pool's
 own CPU per injection (injection, detection, matching) plus every fit::
 
