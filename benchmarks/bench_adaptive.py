@@ -50,8 +50,9 @@ Real outcomes (``--pool RUN_DIR [RUN_DIR ...]``)
 ------------------------------------------------
 Instead of synthetic draws, both methods take the real outcomes of a finished
 injection run whose magnitudes are uniform (``--build-pool analytic|demo``
-makes one with :mod:`bench_speed_accuracy`'s scenes; several runs of one
-image may be pooled).  Because the pool is uniform in magnitude and a design
+makes one with :mod:`bench_speed_accuracy`'s scenes, ``--build-range auto``
+the analytic one over the range a default run draws instead of the fixed
+24.0-26.8; several runs of one image may be pooled).  Because the pool is uniform in magnitude and a design
 is uniform within each of its bins, taking for every designed magnitude an
 unused pool injection from the same design bin (:class:`PoolSampler`) gives
 injections distributed exactly as the design asks, each with its real
@@ -61,7 +62,8 @@ uniform method takes disjoint slices at each N (at most 200).  A third of
 the realizations (0, 3, 6, ...) is held out as the reference (binned at
 0.05 mag; its own noise is estimated by a bootstrap over realizations and
 taken out of the RMSEs in ``debiased``), and ``--closed-form`` adds the
-analytic scene's exact curve.  ``--regions`` also scores both methods on
+analytic scene's exact curve (``--primary`` chooses the reference of the
+coverage figures).  ``--regions`` also scores both methods on
 the footprint's deeper and shallower halves.  CPU seconds count the pool's
 own CPU per injection (injection, detection, matching) plus every fit::
 
@@ -336,6 +338,9 @@ def main(argv=None) -> int:
     g.add_argument("--closed-form", action="store_true",
                    help="the pool is bench_speed_accuracy's analytic white-noise scene: its closed-form curve "
                         "is the primary reference")
+    g.add_argument("--primary", choices=["closed-form", "held-out"], default=None,
+                   help="the reference of the coverage (default: the closed form with --closed-form, else the "
+                        "held-out third)")
     g.add_argument("--no-holdout", action="store_true",
                    help="use the whole pool for replicates (only with --closed-form; no held-out reference)")
     g.add_argument("--pilot", type=int, default=1000, help="uniform pilot of every adaptive run")
@@ -347,6 +352,11 @@ def main(argv=None) -> int:
     g.add_argument("--nsims", type=int, default=40, help="realizations of --build-pool")
     g.add_argument("--build-seed", type=int, default=11,
                    help="injection seed of --build-pool (the image is always made with seed 11)")
+    g.add_argument("--build-range", choices=["bench", "auto"], default="bench",
+                   help="magnitude range of --build-pool analytic: bench_speed_accuracy's 24.0-26.8 (bench; "
+                        "keeps the closed form valid) or the range a default run chooses on that image "
+                        "(auto: (m5 - 5, m5 + 1.5) around the 5-sigma depth; 21.63-28.13 here), in "
+                        "<work>/analytic_autorange_run")
     a = p.parse_args(argv)
     for name in ("reps", "cap", "pilot", "min_batch", "workers", "nsims"):
         if getattr(a, name) < 1:
@@ -358,7 +368,8 @@ def main(argv=None) -> int:
     if a.build_pool:
         if not a.work:
             raise SystemExit("error: --build-pool needs --work DIR.")
-        a.pool = [str(build_pool_cli(a.build_pool, Path(a.work), a.nsims, a.workers, a.build_seed))]
+        a.pool = [str(build_pool_cli(a.build_pool, Path(a.work), a.nsims, a.workers, a.build_seed,
+                                     auto_range=a.build_range == "auto"))]
     if a.pool:
         if a.out is None:
             a.out = str(HERE / "results" / "adaptive_pool")
@@ -410,11 +421,15 @@ def main(argv=None) -> int:
 # --------------------------------------------------------------------------- real outcome pools
 
 
-def build_pool_cli(scene: str, work: Path, nsims: int, workers: int, seed: int, tile_seed: int = 11) -> Path:
+def build_pool_cli(scene: str, work: Path, nsims: int, workers: int, seed: int, tile_seed: int = 11,
+                   auto_range: bool = False) -> Path:
     """Inject and detect a pool with :mod:`bench_speed_accuracy`'s scenes; return its run directory.
 
     The image is made with ``tile_seed``; the injections use ``seed`` (another seed on the same
     ``work`` adds an independent pool of the same image, in ``<scene>_run_seed<seed>``).
+    ``auto_range`` drops the analytic scene's fixed 24.0-26.8 so that the pipeline chooses the
+    range as a default run would (``injection.mag_range = []``); the pool goes to
+    ``analytic_autorange_run``.
     """
     import bench_speed_accuracy as SA
 
@@ -428,6 +443,12 @@ def build_pool_cli(scene: str, work: Path, nsims: int, workers: int, seed: int, 
         density = 60.0
     else:
         raise SystemExit(f"error: --build-pool takes analytic or demo, not {scene!r}.")
+    if auto_range:
+        if scene != "analytic":
+            raise SystemExit("error: --build-range auto is for --build-pool analytic (the demo's range is already "
+                             "the automatic one).")
+        sc = {**sc, "overrides": [o for o in sc["overrides"] if not o.startswith("injection.mag_range")]}
+        scene = "analytic_autorange"
     run_dir = work / (f"{scene}_run" if seed == tile_seed else f"{scene}_run_seed{seed}")
     pool = SA.build_pool(sc, run_dir, nsims=nsims, density=density, seed=seed, workers=workers,
                          log=lambda s: None)
@@ -793,6 +814,7 @@ def summarise_pool(raw: dict, scene: str, refs: dict, cpu_per_injection: float, 
                                        "cov68": float(np.mean([x["cover68"] for x in last])),
                                        "cov95": float(np.mean([x["cover95"] for x in last])),
                                        "band68": _binom99(len(last), 0.6827), "band95": _binom99(len(last), 0.9545)}
+            s["coverage_past_800"] = _coverage_past(ada, 800, r["m50_var"], ref)
         # CPU seconds (injection + detection + every fit) each method needs for each target
         s["cpu_needed"] = {}
         for name, (what, level) in TARGETS.items():
@@ -822,6 +844,36 @@ def summarise_pool(raw: dict, scene: str, refs: dict, cpu_per_injection: float, 
     return out
 
 
+def _coverage_past(ada: list, n_min: int, ref_var: float, ref: str) -> dict:
+    """Coverage of reference ``ref``'s m50 by every step past ``n_min`` injections of every replicate.
+
+    ``cov68`` / ``cov95`` are the posterior's own central intervals.  A held-out reference has an
+    m50 noise of its own (variance ``ref_var``, independent of the replicates), which an interval
+    as narrow as that noise misses by itself; ``with_reference_noise`` therefore also counts, with
+    a normal approximation of each interval (68% half-width ``h``), ``|error| <= z sqrt(h^2 +
+    ref_var)`` for z = 1 and 1.96, beside the same approximation with ``ref_var = 0`` (which shows
+    what the approximation alone changes).  Steps of one replicate are correlated, so the binomial
+    range (of the number of replicates) is only a guide.
+    """
+    st = [x for a in ada for x in a["steps"] if x["n"] > n_min and math.isfinite(x["halfwidth"])
+          and math.isfinite(x["scores"][ref]["m50_err"])]
+    if not st:
+        return {"intervals": 0}
+    err = np.array([x["scores"][ref]["m50_err"] for x in st])
+    h = np.array([x["halfwidth"] for x in st])
+    out = {"intervals": len(st), "replicates": len(ada), "halfwidth_median": float(np.median(h)),
+           "cov68": float(np.mean([x["cover68"] for x in st])), "cov95": float(np.mean([x["cover95"] for x in st])),
+           "band68": _binom99(len(ada), 0.6827), "band95": _binom99(len(ada), 0.9545),
+           "error_over_halfwidth": {"mean": float(np.mean(err / h)), "sd": float(np.std(err / h, ddof=1))
+                                    if len(st) > 1 else None}}
+    for name, v in (("normal_approximation", 0.0), ("with_reference_noise", ref_var)):
+        w = np.sqrt(h * h + v)
+        out[name] = {"cov68": float(np.mean(np.abs(err) <= w)), "cov95": float(np.mean(np.abs(err) <= 1.96 * w)),
+                     "error_over_width_mean": float(np.mean(err / w)),
+                     "error_over_width_sd": float(np.std(err / w, ddof=1)) if len(st) > 1 else None}
+    return out
+
+
 def run_pool(a) -> int:
     """``--pool RUN_DIR``: both methods on real injection outcomes (see the module docstring)."""
     dirs = [str(Path(d).resolve()) for d in a.pool]
@@ -834,6 +886,8 @@ def run_pool(a) -> int:
                 "min_batch": a.min_batch, "holdout": not a.no_holdout, "closed_form": a.closed_form}
     if a.regions:
         settings["regions"] = True
+    if a.primary is not None:
+        settings["primary"] = a.primary
     raw_path = out / f"raw_{scene}.json"
     raw = {"settings": settings, "uniform": {}, "adaptive": {}}
     if raw_path.exists():
@@ -846,7 +900,11 @@ def run_pool(a) -> int:
     refs = pool_references(pool, held, a.closed_form, a.regions)
     if not refs:
         raise SystemExit("error: no reference: keep the held-out third or pass --closed-form.")
-    primary = "closed form" if a.closed_form else "held-out pool"
+    primary = ({"held-out": "held-out pool", "closed-form": "closed form"}.get(a.primary)
+               or ("closed form" if a.closed_form else "held-out pool"))
+    if primary not in refs:
+        raise SystemExit(f"error: --primary {a.primary}: no {primary} reference (needs "
+                         + ("--closed-form)." if primary == "closed form" else "the held-out third)."))
     print(f"{scene}: pool of {held.size} injections over {pool['lo']:.2f}-{pool['hi']:.2f} mag, {int(held.sum())} "
           f"held out; {perm_a.size // a.reps} per adaptive replicate; CPU {1e3 * pool['cpu_per_injection']:.3f} ms "
           "per injection; reference m50 " + ", ".join(f"{k} {r['m50']:.4f}" for k, r in refs.items()), flush=True)
@@ -890,6 +948,13 @@ def run_pool(a) -> int:
         print(f"coverage vs {primary} at each replicate's last step ({cl['replicates']} replicates, median "
               f"{cl['n_median']:.0f} injections, half-width {cl['halfwidth_median']:.4f}): 68% {cl['cov68']:.2f} "
               f"(99% range {cl['band68']}), 95% {cl['cov95']:.2f} ({cl['band95']})", flush=True)
+    cp = summary.get(primary, {}).get("coverage_past_800")
+    if cp and cp.get("intervals"):
+        wr = cp["with_reference_noise"]
+        print(f"coverage vs {primary} over the {cp['intervals']} steps past 800 injections (median half-width "
+              f"{cp['halfwidth_median']:.4f}): 68% {cp['cov68']:.2f}, 95% {cp['cov95']:.2f}; error / half-width "
+              f"mean {cp['error_over_halfwidth']['mean']:+.2f} sd {_fmt(cp['error_over_halfwidth']['sd'], '.2f')}; with the "
+              f"reference's own noise: 68% {wr['cov68']:.2f}, 95% {wr['cov95']:.2f}", flush=True)
     print(f"wrote {out / f'adaptive_{scene}.json'} and {out / f'adaptive_{scene}.png'}")
     return 0
 

@@ -190,3 +190,27 @@ def test_a_uniform_pool_feeds_a_design_exactly_without_reuse():
     with pytest.raises(B.PoolExhausted, match="needs"):
         sampler.take(np.full(5000, 25.41))
     np.testing.assert_array_equal(sampler.used, used)
+
+
+def test_pool_coverage_counts_steps_past_a_size_and_widens_by_the_reference_noise():
+    """The adaptive benchmark's coverage over steps past 800 injections: only those steps count, the
+    posterior's own interval flags are averaged as recorded, and a reference with noise of its own widens
+    each (normal) interval to sqrt(h^2 + var): an error of 1.2 h is missed at 68% alone and covered once a
+    reference sd of h is added (sqrt(2) h > 1.2 h)."""
+    B = _bench_adaptive()
+    step = lambda n, err, h, c68, c95: {"n": n, "halfwidth": h, "cover68": c68, "cover95": c95,
+                                        "scores": {"ref": {"m50_err": err}}}
+    ada = [{"steps": [step(500, 0.5, 0.01, False, False),        # before 800: ignored
+                      step(900, 0.012, 0.01, False, True),
+                      step(1300, 0.004, 0.01, True, True)]},
+           {"steps": [step(900, -0.03, 0.01, False, False),
+                      step(1300, float("nan"), 0.01, False, False)]}]   # no m50: ignored
+    out = B._coverage_past(ada, 800, 1e-4, "ref")
+    assert out["intervals"] == 3 and out["replicates"] == 2
+    assert out["cov68"] == pytest.approx(1 / 3) and out["cov95"] == pytest.approx(2 / 3)
+    assert out["normal_approximation"]["cov68"] == pytest.approx(1 / 3)
+    assert out["with_reference_noise"]["cov68"] == pytest.approx(2 / 3)
+    # -0.03 is 3 h alone and 2.1 sqrt(2) h with the reference's noise: missed at 95% either way
+    assert out["with_reference_noise"]["cov95"] == pytest.approx(2 / 3)
+    assert out["error_over_halfwidth"]["mean"] == pytest.approx((1.2 + 0.4 - 3.0) / 3)
+    assert B._coverage_past(ada, 5000, 0.0, "ref") == {"intervals": 0}
