@@ -23,7 +23,7 @@ from comest_bayes.bayes.model import CompletenessModel
 from comest_bayes.bayes.outcomes import compress_for, covariate_warnings, covariates_from_outcomes
 from comest_bayes.bayes.spec import load_spec, resolve_candidates
 from comest_bayes.bayes.posterior import (CompletenessPosterior, Footprint, FootprintHistogram, average_crossings, average_prob, coarse_noise_map, footprint_sample)
-from comest_bayes.seeding import int_seed_for, rng_for
+from comest_bayes.seeding import Stream, int_seed_for, rng_for
 from comest_bayes.bayes.selection import choose_tau, select_model
 
 __all__ = ["fit_kind", "purity_outcomes", "warm_state", "shared_maps", "footprint_grid", "needs_smooth",
@@ -202,7 +202,7 @@ def fit_kind(outcomes: Table, *, kind: str, quantity: str, requested: str, confi
                           f"lower tail) is set by the prior on w. Inject more sources around m50 or treat w as "
                           f"an upper limit.", IdentifiabilityWarning, stacklevel=2)
     data = compress_for(spec, cov, outcome, meta=meta)
-    seed = int_seed_for(config.seed, "fit", quantity, kind)
+    seed = int_seed_for(config.seed, Stream.FIT, quantity, kind)
     candidates = resolve_candidates(spec) if spec.is_selection else [spec]
     smooth = any(c.uses_smooth for c in candidates)
     # every unmasked pixel, grouped into weighted covariate cells: the exact image average
@@ -270,7 +270,7 @@ def fit_kind(outcomes: Table, *, kind: str, quantity: str, requested: str, confi
               "image_shape": tuple(int(v) for v in image_shape), "mag_range": [mag_lo, mag_hi],
               "injected_range": injected, "depth_range": [float(np.min(cov.depth)), float(np.max(cov.depth))],
               "kind": kind, "quantity": quantity, "tau": model.tau},
-        noise_grid=coarse_noise_map(noise, mask) if noise_grid is None else noise_grid, footprint=footprint_sample(mask, 2000, rng_for(seed, "footprint")),
+        noise_grid=coarse_noise_map(noise, mask) if noise_grid is None else noise_grid, footprint=footprint_sample(mask, 2000, rng_for(seed, Stream.FOOTPRINT)),
         wcs_header=wcs_header, diagnostics={"sampler": diagnostics, "selection": selection, "warnings": warn},
         cells=cells,
     )

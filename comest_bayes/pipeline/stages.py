@@ -28,7 +28,7 @@ from comest_bayes.detect.sep_backend import DetectionResult, detect, filter_kern
 from comest_bayes.errors import ComestError, ConfigError, DetectionOverflowError, InputError
 from comest_bayes.io.image import ImageData, load_image
 from comest_bayes.io.rundir import RunDirectory, file_checksum, atomic_path
-from comest_bayes.seeding import seed_sequence, int_seed_for
+from comest_bayes.seeding import Stream, seed_sequence, int_seed_for
 from comest_bayes.io.jsonio import dumps
 from comest_bayes.io import layout
 from comest_bayes.pipeline.preflight import SMALLEST_SEEING_PIX, budget_warnings, check_injection_count, check_memory, choose_densities, FEW_USABLE_INJECTIONS
@@ -344,7 +344,7 @@ def _run_pipeline(options: ImageOptions, config: RunConfig, out_dir, *, log, com
             det = _load_detection(run, image)
         t0 = time.perf_counter()
         sf = build_source_free(image.data, det, mask=image.mask, fwhm=float(fwhm["fwhm"]), config=config.sourcefree,
-                               seed=seed_sequence(config.seed, "sourcefree"))
+                               seed=seed_sequence(config.seed, Stream.SOURCEFREE))
         sf_seconds = time.perf_counter() - t0
         replacement = judge_replacement(sf.meta, on=config.injection.on, warn_fraction=config.sourcefree.warn_replaced,
                                         max_fraction=config.sourcefree.max_replaced)
@@ -743,7 +743,7 @@ def _adaptive_injection(run: RunDirectory, ctx, config: RunConfig, compute: "Com
         state[kind] = {"n": 0, "design": uniform_design(lo, hi), "batches": [], "done": False, "reached": False,
                        "reason": "", "outcomes": [],
                        "fit": package_fitter(image_shape=noise.shape, noise=noise, mask=mask, lo=lo, hi=hi,
-                                             seed=int_seed_for(config.seed, "adaptive", kind), model=model, kind=kind,
+                                             seed=int_seed_for(config.seed, Stream.ADAPTIVE, kind), model=model, kind=kind,
                                              mag_bin=config.ratios.mag_bin, magnitudes=mags_f)}
     goal = (f"the posterior sd of f at {', '.join(f'{m:.2f}' for m in mags_f)} mag is <= {ad.precision}" if at_f
             else f"the 68% half-width of m50 is <= {ad.precision} mag")

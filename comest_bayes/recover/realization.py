@@ -23,7 +23,7 @@ from astropy.wcs import WCS
 from comest_bayes.config import DetectionConfig, InjectionConfig, MatchingConfig
 from comest_bayes.errors import InputError
 from comest_bayes.recover.matching import classify_detections, match_one_to_one
-from comest_bayes.seeding import int_seed_for, rng_for
+from comest_bayes.seeding import Stream, int_seed_for, rng_for
 from comest_bayes.io import layout
 from comest_bayes.inject.psfmodel import make_psf
 from comest_bayes.inject.cosmos import load_cosmos
@@ -220,13 +220,13 @@ def _run_realization(task: RealizationTask) -> RealizationResult:
 
         design = MagnitudeDesign.from_dict(task.design)
     truth = make_truth(kind, shape=base.shape, mask=mask, pixel_scale=ctx.pixel_scale, fwhm_pix=ctx.fwhm,
-                       config=ctx.injection, mag_range=ctx.mag_range, rng=rng_for(ctx.root_seed, "inject", kind, index),
+                       config=ctx.injection, mag_range=ctx.mag_range, rng=rng_for(ctx.root_seed, Stream.INJECT, kind, index),
                        wcs=ctx.wcs, zeropoint=ctx.zeropoint, observed_catalog=observed, cosmos=cosmos, psf=psf,
                        mag_design=design)
     t1 = time.perf_counter()
     image, truth = render_truth(base, truth, psf=psf, config=ctx.injection,
                                 pixel_scale=ctx.pixel_scale, gain=ctx.gain, zeropoint=ctx.zeropoint,
-                                rng_seed=int_seed_for(ctx.root_seed, "render", kind, index), cosmos=cosmos,
+                                rng_seed=int_seed_for(ctx.root_seed, Stream.RENDER, kind, index), cosmos=cosmos,
                                 wcs=ctx.wcs)
     t2 = time.perf_counter()
     seconds = {"make": t1 - t0, "render": t2 - t1}
