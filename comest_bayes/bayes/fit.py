@@ -295,7 +295,7 @@ def fit_kind(outcomes: Table, *, kind: str, quantity: str, requested: str, confi
         "curve": _json_curve(post.curve(np.asarray(mag_centers, float))),
         "diagnostics": diagnostics,
         "tau": model.tau,
-        "shape_check": check,
+        "shape_check": check.to_dict(),
         "warnings": warn + list(diagnostics.get("warnings", [])),
         "n_outcomes": int(data.ntotal),
         "n_cells": int(data.ncells),

@@ -667,7 +667,7 @@ m SE}_\Delta)` nats).  If no adequate candidate is
                                                                             else {})}
                 if name != top and not both_undefined and not (z <= adequacy_fraction):
                     ok = False
-        p_shape = (info.get("shape") or {}).get("p_value")
+        p_shape = info["shape"].p_value if "shape" in info else None
         if name != top and p_shape is not None and p_shape < P_WARN:
             ok = False
         adequacy[name] = (ok, qsum, p_shape)
