@@ -19,7 +19,7 @@ from __future__ import annotations
 
 import math
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 import warnings
 
 import numpy as np
@@ -354,8 +354,8 @@ def package_fitter(*, image_shape, noise, mask, lo: float, hi: float, seed: int,
         if warm is None:
             state["selected_at"] = n
         state["warm"] = warm_state(post)
-        entry["warm_refit"] = warm is not None
-        converged = bool((entry.get("diagnostics") or {}).get("converged", True))
+        entry = replace(entry, warm_refit=warm is not None)
+        converged = bool(entry.diagnostics.get("converged", True))
         return (PosteriorView(grid=grid, curves=curves, m50=np.asarray(m50, float), converged=converged),
                 (post, entry))
 
