@@ -65,6 +65,7 @@ MILLION = textwrap.dedent("""
                            image_shape=scene.shape, noise=scene.noise, mask=scene.mask, wcs_header=None,
                            mag_range=(lo, hi), mag_centers=0.5 * (edges[:-1] + edges[1:]))
     wall, cpu = time.perf_counter() - t0, time.process_time() - c0
+    entry = entry.to_dict()
     q = S.truth_quantities(truth, scene)
     print(json.dumps({{"n": {n}, "wall": wall, "cpu": cpu, "threads": peak["threads"], "model": entry["name"],
                       "m50": entry["m50"], "m50_truth": q["m50"], "cells": entry["n_cells"],

@@ -173,6 +173,7 @@ def run_replicate(task: dict) -> dict:
     fp = np.asarray(post.footprint, dtype=float)[:npos]
     tq_fp = S.truth_quantities(truth, scene, positions=fp)
 
+    entry = entry.to_dict()
     diag = entry.get("diagnostics") or {}
     sel = entry.get("selection") or {}
     shape = entry.get("shape_check") or {}

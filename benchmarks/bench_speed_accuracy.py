@@ -330,6 +330,7 @@ def auto_estimate(rows: Table, *, seed: int, wide, maps: dict, mag_range) -> dic
                                footprints=maps["shared"]["footprints"], noise_grid=maps["shared"]["noise_grid"])
         curves = post.average_curve(wide, nsamples=SUMMARY_DRAWS)
     cpu = time.process_time() - c0 + maps["cpu"]
+    entry = entry.to_dict()
     sel = entry.get("selection") or {}
     return {"curves": curves, "m50s": crossing_magnitudes(wide, curves, 0.5), "cpu": cpu, "chosen": entry["name"],
             "selection": sel.get("table"), "rule": sel.get("rule"), "n_cells": entry.get("n_cells")}

@@ -16,6 +16,7 @@ from scipy import ndimage
 from comest_bayes.config import SourceFreeConfig
 from comest_bayes.errors import InputError
 from comest_bayes.io import layout
+from comest_bayes.seeding import rng_for
 
 __all__ = ["SourceFreeResult", "build_source_free", "removal_radii", "dilated_footprint", "judge_replacement",
            "format_percent", "BACKGROUND_SHIFT_WARN_SIGMA", "NOISE_RATIO_WARN"]
@@ -183,11 +184,11 @@ def _kept_mesh_fraction(usable: np.ndarray, size: int) -> float:
 def _rng(seed) -> np.random.Generator:
     if seed is None or isinstance(seed, bool):
         raise InputError(f"build_source_free needs a seed (an int, numpy SeedSequence or Generator); got {seed!r}. "
-                         f"Pass e.g. seed=comest_bayes.seeding.seed_sequence(root_seed, 'sourcefree').")
+                         f"Pass e.g. seed=comest_bayes.seeding.seed_sequence(root_seed, Stream.SOURCEFREE).")
     if isinstance(seed, np.random.Generator):
         return seed
     if isinstance(seed, (np.random.SeedSequence, int, np.integer)):
-        return np.random.default_rng(seed)
+        return rng_for(seed)  # the numbers of numpy.random.default_rng(seed)
     raise InputError(f"seed must be an int, numpy SeedSequence or Generator; got {type(seed).__name__}.")
 
 

@@ -7,11 +7,13 @@ posterior predicts for the same injections and sums the differences into a chi-s
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import numpy as np
 from scipy import special
 from comest_bayes.bayes.model import padded_size
 
-__all__ = ["shape_check", "P_WARN", "shape_warning"]
+__all__ = ["shape_check", "ShapeCheck", "ShapeBin", "P_WARN", "shape_warning"]
 
 #: A p-value below this makes the fit warn that the model's form, not its statistics, limits it.
 P_WARN = 1e-3
@@ -21,7 +23,76 @@ MIN_VARIANCE = 0.25
 MAX_DRAWS = 200
 
 
-def shape_check(model, draws, mag_edges) -> dict:
+@dataclass(frozen=True)
+class ShapeBin:
+    """One magnitude bin of a :class:`ShapeCheck`.
+
+    Attributes
+    ----------
+    mag : float
+        The bin's centre.
+    n : int
+        Injections in the bin.
+    observed : int
+        Of them, detected (positive outcomes).
+    expected : float
+        Detections the posterior predicts for the same injections.
+    z : float or None
+        ``(observed - expected) / sd``; None when the bin is left out (predictive variance below
+        :data:`MIN_VARIANCE`).
+    """
+
+    mag: float
+    n: int
+    observed: int
+    expected: float
+    z: float | None
+
+    def to_dict(self) -> dict:
+        """The JSON form: keys ``mag``, ``n``, ``observed``, ``expected``, ``z``."""
+        return {"mag": self.mag, "n": self.n, "observed": self.observed, "expected": self.expected, "z": self.z}
+
+
+@dataclass(frozen=True)
+class ShapeCheck:
+    """The posterior predictive check of a fit's detections per magnitude bin (:func:`shape_check`).
+
+    Attributes
+    ----------
+    chi2 : float or None
+        Sum of ``z**2`` over the bins used; None when no bin qualifies.
+    dof : int
+        Bins used.
+    p_value : float or None
+        Chi-square tail probability of ``chi2`` for ``dof``; None when no bin qualifies.
+    max_abs_z : float or None
+        The largest ``|z|``; None when no bin qualifies.
+    mag_at_max : float or None
+        Centre of that bin; None when no bin qualifies.
+    bins : tuple of ShapeBin
+        Every bin, in magnitude order.
+    """
+
+    chi2: float | None
+    dof: int
+    p_value: float | None
+    max_abs_z: float | None
+    mag_at_max: float | None
+    bins: tuple[ShapeBin, ...]
+
+    def to_dict(self) -> dict:
+        """The JSON form (``summary.json``: ``kinds.<kind>.model.shape_check``)."""
+        return {"chi2": self.chi2, "dof": self.dof, "p_value": self.p_value, "max_abs_z": self.max_abs_z,
+                "mag_at_max": self.mag_at_max, "bins": [b.to_dict() for b in self.bins]}
+
+    @classmethod
+    def from_dict(cls, d: dict) -> "ShapeCheck":
+        """The check from its JSON form (:meth:`to_dict`)."""
+        return cls(chi2=d["chi2"], dof=d["dof"], p_value=d["p_value"], max_abs_z=d["max_abs_z"],
+                   mag_at_max=d["mag_at_max"], bins=tuple(ShapeBin(**b) for b in d["bins"]))
+
+
+def shape_check(model, draws, mag_edges) -> ShapeCheck:
     """Posterior predictive check of the detections per magnitude bin.
 
     Parameters
@@ -36,7 +107,7 @@ def shape_check(model, draws, mag_edges) -> dict:
 
     Returns
     -------
-    dict
+    ShapeCheck
         ``chi2``, ``dof``, ``p_value`` (None when no bin qualifies),
         ``max_abs_z`` and ``mag_at_max`` (the worst bin's centre), and
         ``bins``: per bin ``mag``, ``n``, ``observed``, ``expected``, ``z``
@@ -76,25 +147,25 @@ def shape_check(model, draws, mag_edges) -> dict:
     dof = int(used.sum())
     chi2 = float(np.sum(z[used] ** 2)) if dof else None
     worst = int(np.nanargmax(np.abs(z))) if dof else None
-    return {
-        "chi2": chi2,
-        "dof": dof,
-        "p_value": float(special.chdtrc(dof, chi2)) if dof else None,
-        "max_abs_z": float(abs(z[worst])) if dof else None,
-        "mag_at_max": float(centres[worst]) if dof else None,
-        "bins": [{"mag": float(c), "n": int(round(nn)), "observed": int(round(o)), "expected": float(e),
-                  "z": None if not u else float(zz)}
-                 for c, nn, o, e, u, zz in zip(centres, count, observed, expected, used, z)],
-    }
+    return ShapeCheck(
+        chi2=chi2,
+        dof=dof,
+        p_value=float(special.chdtrc(dof, chi2)) if dof else None,
+        max_abs_z=float(abs(z[worst])) if dof else None,
+        mag_at_max=float(centres[worst]) if dof else None,
+        bins=tuple(ShapeBin(mag=float(c), n=int(round(nn)), observed=int(round(o)), expected=float(e),
+                            z=None if not u else float(zz))
+                   for c, nn, o, e, u, zz in zip(centres, count, observed, expected, used, z)),
+    )
 
 
-def shape_warning(check: dict, *, name: str, kind: str, quantity: str) -> str | None:
+def shape_warning(check: ShapeCheck, *, name: str, kind: str, quantity: str) -> str | None:
     """The warning text for a failed check, or None when the model describes the outcomes."""
-    p = check.get("p_value")
+    p = check.p_value
     if p is None or p >= P_WARN:
         return None
-    return (f"the {name} {quantity} curve of {kind} does not describe the binned outcomes (chi2 = {check['chi2']:.1f} "
-            f"for {check['dof']} magnitude bins, p = {p:.1e}; worst bin at {check['mag_at_max']:.2f} mag, "
-            f"{check['max_abs_z']:.1f} sigma): with this many injections the model's form, not its statistics, "
+    return (f"the {name} {quantity} curve of {kind} does not describe the binned outcomes (chi2 = {check.chi2:.1f} "
+            f"for {check.dof} magnitude bins, p = {p:.1e}; worst bin at {check.mag_at_max:.2f} mag, "
+            f"{check.max_abs_z:.1f} sigma): with this many injections the model's form, not its statistics, "
             f"limits it and its intervals are too narrow; trust the binned ratios, or fit a more flexible model "
             f"(--model)")

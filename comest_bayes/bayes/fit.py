@@ -10,12 +10,13 @@ from __future__ import annotations
 
 import time
 import warnings
+from dataclasses import dataclass, field
 
 import numpy as np
 from astropy.table import Table
 
 from comest_bayes.ratios import binned as R
-from comest_bayes.bayes.checks import shape_check, shape_warning
+from comest_bayes.bayes.checks import ShapeCheck, shape_check, shape_warning
 from comest_bayes.config import RunConfig
 from comest_bayes.errors import InputError
 from comest_bayes.bayes.inference import IdentifiabilityWarning, fit, fit_map
@@ -23,16 +24,96 @@ from comest_bayes.bayes.model import CompletenessModel
 from comest_bayes.bayes.outcomes import compress_for, covariate_warnings, covariates_from_outcomes
 from comest_bayes.bayes.spec import load_spec, resolve_candidates
 from comest_bayes.bayes.posterior import (CompletenessPosterior, Footprint, FootprintHistogram, average_crossings, average_prob, coarse_noise_map, footprint_sample)
-from comest_bayes.seeding import int_seed_for, rng_for
+from comest_bayes.seeding import Stream, int_seed_for, rng_for
 from comest_bayes.bayes.selection import choose_tau, select_model
 
-__all__ = ["fit_kind", "purity_outcomes", "warm_state", "shared_maps", "footprint_grid", "needs_smooth",
+__all__ = ["fit_kind", "FitEntry", "purity_outcomes", "warm_state", "shared_maps", "footprint_grid", "needs_smooth",
            "MIN_OUTCOMES", "MIN_CLASS"]
 
 #: Fewer usable outcomes than this: the fit still runs but warns that the prior dominates.
 MIN_OUTCOMES = 20
 #: Offset of the probe magnitudes of the targeted quantities from the data's m50 (mag).
 PROBE_OFFSET = 0.3
+
+
+@dataclass(frozen=True)
+class FitEntry:
+    """What the fit of one kind and quantity reports: the ``summary.json`` entry before files are added.
+
+    :func:`fit_kind` makes it; the fit stage adds its CPU time (``cpu_seconds``), the adaptive
+    design whether the fit was a warm refit (``warm_refit``), and a fit that was not run is
+    ``skipped``.  :meth:`to_dict` is the JSON form, to which the caller adds the names of the files
+    it wrote (``posterior_file``, ``m50_map_file``, ``footprint``; ``docs/ratios.md``).
+
+    Attributes
+    ----------
+    name : str or None
+        The fitted model (the chosen one of a selection); None when skipped.
+    requested : str
+        The model or selection asked for.
+    selection : dict or None
+        The selection's table and rule (:meth:`SelectionResult.to_dict` without its diagnostics);
+        None for one model.
+    magnitudes : dict
+        ``{"m50": {...}, "m80": {...}, "m90": {...}}``: medians and 68% / 95% intervals
+        (:meth:`CompletenessPosterior.summary_magnitudes`); their keys are top-level keys of the
+        JSON form.
+    parameters : dict
+        Per physical parameter, ``median``, ``lo68``, ``hi68``.
+    curve : dict
+        The posterior curve on the run's magnitude bin centres (lists of floats).
+    diagnostics : dict
+        The sampler's diagnostics (``PosteriorDiagnostics.to_dict``); empty without sampling.
+    tau : float or None
+        The spline's smoothness; None for other links.
+    shape_check : ShapeCheck or None
+        The posterior predictive check per magnitude bin.
+    warnings : tuple of str
+        What the fit warned about.
+    n_outcomes, n_cells : int or None
+        Outcomes fitted, and the binomial cells they were compressed into.
+    seconds : float or None
+        Wall time of the fit.
+    warm_refit : bool or None
+        Adaptive design fits only: refitted from the previous posterior (not in the JSON form when None).
+    cpu_seconds : float or None
+        CPU time of the fit task (not in the JSON form when None).
+    skipped : str or None
+        Why no model was fitted; the JSON form is then ``name``, ``requested``, ``cpu_seconds`` and this.
+    """
+
+    name: str | None
+    requested: str
+    selection: dict | None = None
+    magnitudes: dict = field(default_factory=dict)
+    parameters: dict = field(default_factory=dict)
+    curve: dict = field(default_factory=dict)
+    diagnostics: dict = field(default_factory=dict)
+    tau: float | None = None
+    shape_check: ShapeCheck | None = None
+    warnings: tuple[str, ...] = ()
+    n_outcomes: int | None = None
+    n_cells: int | None = None
+    seconds: float | None = None
+    warm_refit: bool | None = None
+    cpu_seconds: float | None = None
+    skipped: str | None = None
+
+    def to_dict(self) -> dict:
+        """The JSON form: ``kinds.<kind>.model`` (or ``purity_model``) of ``summary.json``, without file names."""
+        if self.skipped is not None:
+            return {"name": self.name, "requested": self.requested,
+                    **({} if self.cpu_seconds is None else {"cpu_seconds": self.cpu_seconds}), "skipped": self.skipped}
+        out = {"name": self.name, "requested": self.requested, "selection": self.selection, **self.magnitudes,
+               "parameters": self.parameters, "curve": self.curve, "diagnostics": self.diagnostics, "tau": self.tau,
+               "shape_check": None if self.shape_check is None else self.shape_check.to_dict(),
+               "warnings": list(self.warnings), "n_outcomes": self.n_outcomes, "n_cells": self.n_cells,
+               "seconds": self.seconds}
+        if self.warm_refit is not None:
+            out["warm_refit"] = self.warm_refit
+        if self.cpu_seconds is not None:
+            out["cpu_seconds"] = self.cpu_seconds
+        return out
 
 
 def purity_outcomes(matched: Table, false: Table, mag_column: str = "mag_auto") -> Table:
@@ -142,7 +223,7 @@ def fit_kind(outcomes: Table, *, kind: str, quantity: str, requested: str, confi
              noise: np.ndarray, mask: np.ndarray, wcs_header: str | None, mag_range, mag_centers,
              outcome_column: str = "detected", footprint_points=None, warm: dict | None = None,
              footprints: dict | None = None, noise_grid: np.ndarray | None = None,
-             log=lambda s: None) -> tuple[CompletenessPosterior, dict]:
+             log=lambda s: None) -> tuple[CompletenessPosterior, FitEntry]:
     """Fit (or select and fit) the model of one kind and quantity.
 
     Parameters
@@ -176,8 +257,8 @@ def fit_kind(outcomes: Table, *, kind: str, quantity: str, requested: str, confi
 
     Returns
     -------
-    (CompletenessPosterior, dict)
-        The posterior (not yet saved) and its ``summary.json`` entry.
+    (CompletenessPosterior, FitEntry)
+        The posterior (not yet saved) and its ``summary.json`` entry (:meth:`FitEntry.to_dict`).
     """
     t0 = time.perf_counter()
     spec = load_spec(requested)
@@ -202,7 +283,7 @@ def fit_kind(outcomes: Table, *, kind: str, quantity: str, requested: str, confi
                           f"lower tail) is set by the prior on w. Inject more sources around m50 or treat w as "
                           f"an upper limit.", IdentifiabilityWarning, stacklevel=2)
     data = compress_for(spec, cov, outcome, meta=meta)
-    seed = int_seed_for(config.seed, "fit", quantity, kind)
+    seed = int_seed_for(config.seed, Stream.FIT, quantity, kind)
     candidates = resolve_candidates(spec) if spec.is_selection else [spec]
     smooth = any(c.uses_smooth for c in candidates)
     # every unmasked pixel, grouped into weighted covariate cells: the exact image average
@@ -270,7 +351,7 @@ def fit_kind(outcomes: Table, *, kind: str, quantity: str, requested: str, confi
               "image_shape": tuple(int(v) for v in image_shape), "mag_range": [mag_lo, mag_hi],
               "injected_range": injected, "depth_range": [float(np.min(cov.depth)), float(np.max(cov.depth))],
               "kind": kind, "quantity": quantity, "tau": model.tau},
-        noise_grid=coarse_noise_map(noise, mask) if noise_grid is None else noise_grid, footprint=footprint_sample(mask, 2000, rng_for(seed, "footprint")),
+        noise_grid=coarse_noise_map(noise, mask) if noise_grid is None else noise_grid, footprint=footprint_sample(mask, 2000, rng_for(seed, Stream.FOOTPRINT)),
         wcs_header=wcs_header, diagnostics={"sampler": diagnostics, "selection": selection, "warnings": warn},
         cells=cells,
     )
@@ -286,19 +367,19 @@ def fit_kind(outcomes: Table, *, kind: str, quantity: str, requested: str, confi
                 "the model's form and priors; inject over a range that brackets the transition")
         warnings.warn(text, UserWarning, stacklevel=2)
         warn.append(text)
-    entry = {
-        "name": chosen_spec.name,
-        "requested": requested,
-        "selection": selection,
-        **mags,
-        "parameters": _param_summary(model, draws),
-        "curve": _json_curve(post.curve(np.asarray(mag_centers, float))),
-        "diagnostics": diagnostics,
-        "tau": model.tau,
-        "shape_check": check,
-        "warnings": warn + list(diagnostics.get("warnings", [])),
-        "n_outcomes": int(data.ntotal),
-        "n_cells": int(data.ncells),
-        "seconds": round(time.perf_counter() - t0, 2),
-    }
+    entry = FitEntry(
+        name=chosen_spec.name,
+        requested=requested,
+        selection=selection,
+        magnitudes=mags,
+        parameters=_param_summary(model, draws),
+        curve=_json_curve(post.curve(np.asarray(mag_centers, float))),
+        diagnostics=diagnostics,
+        tau=model.tau,
+        shape_check=check,
+        warnings=tuple(warn + list(diagnostics.get("warnings", []))),
+        n_outcomes=int(data.ntotal),
+        n_cells=int(data.ncells),
+        seconds=round(time.perf_counter() - t0, 2),
+    )
     return post, entry

@@ -19,7 +19,7 @@ from scipy.optimize import minimize
 from comest_bayes.errors import InputError
 from comest_bayes.io.jsonio import json_float
 from comest_bayes.bayes.psis import psis_log_weights
-from comest_bayes.seeding import int_seed_for, rng_for
+from comest_bayes.seeding import Stream, int_seed_for, rng_for
 
 __all__ = [
     "InferenceWarning",
@@ -359,7 +359,7 @@ def fit_map(model, *, nstarts: int = 6, seed: int, jitter: float = 0.5, method: 
     if not math.isfinite(_finite_log_prob(model, x0)):
         raise InputError(f"fit_map: the model's initial point {x0.tolist()} has a non-finite log posterior; "
                          f"check the data (empty?) and the priors of {list(model.names)}")
-    rng = rng_for(seed, "map-starts")
+    rng = rng_for(seed, Stream.MAP_STARTS)
     starts = [x0]
     if start is not None:
         warm = np.asarray(start, dtype=np.float64).reshape(-1)
@@ -612,7 +612,7 @@ def sample_posterior(model, lap: LaplaceResult, *, seed: int, nwalkers: int | No
         (redrawn closer to the mean where the log posterior is not finite).
     seed : int
         Root seed: walker positions from stream ``"walkers"``, emcee's
-        generator from ``int_seed_for(seed, "emcee")``.
+        generator from ``int_seed_for(seed, Stream.EMCEE)``.
     nwalkers : int, optional
         Default ``2 D + 2`` rounded up to even, at least 16.
     min_ess : float, default 1000
@@ -668,9 +668,9 @@ def sample_posterior(model, lap: LaplaceResult, *, seed: int, nwalkers: int | No
         out[~np.isfinite(out)] = -np.inf  # NaN / +inf are invalid points, emcee rejects NaN outright
         return out
 
-    rng = rng_for(seed, "walkers")
+    rng = rng_for(seed, Stream.WALKERS)
     pos, lp0 = _initial_walkers(model, lap, nwalkers, rng, lp_fn)
-    random_state = np.random.RandomState(int_seed_for(seed, "emcee")).get_state()
+    random_state = np.random.RandomState(int_seed_for(seed, Stream.EMCEE)).get_state()
     state = emcee.State(pos, log_prob=lp0, random_state=random_state)
     sampler = emcee.EnsembleSampler(nwalkers, d, lp_fn, vectorize=True, moves=_moves(moves))
 
@@ -890,7 +890,7 @@ def importance_posterior(model, lap: LaplaceResult, *, seed: int, ndraws: int = 
         every log-posterior evaluation, ``nout`` the returned draws).
     """
     t0 = time.perf_counter()
-    rng = rng_for(seed, "importance")
+    rng = rng_for(seed, Stream.IMPORTANCE)
     max_draws = max(int(ndraws), IS_MAX_DRAWS if max_draws is None else int(max_draws))
     mean, cov = lap.mean, lap.cov * inflate ** 2
     evaluations = 0

@@ -17,7 +17,7 @@ from scipy.special import logsumexp
 
 from comest_bayes.errors import InputError, ConfigError
 from comest_bayes.bayes.inference import FitResult, InferenceWarning, fit, log_prob_rows, fit_map, laplace
-from comest_bayes.seeding import int_seed_for, rng_for
+from comest_bayes.seeding import Stream, int_seed_for, rng_for
 from comest_bayes.bayes.model import CompletenessModel, shared_layout
 from comest_bayes.bayes.checks import P_WARN, shape_check
 from comest_bayes.bayes.spec import resolve_candidates, load_spec
@@ -445,7 +445,7 @@ def choose_tau(model, *, seed: int, start=None, taus=TAU_GRID):
         model.tau = tau
         with warnings.catch_warnings():
             warnings.simplefilter("ignore", InferenceWarning)
-            mp = fit_map(model, nstarts=1 if prev is not None else 2, seed=int_seed_for(seed, "tau", repr(tau)),
+            mp = fit_map(model, nstarts=1 if prev is not None else 2, seed=int_seed_for(seed, Stream.TAU, repr(tau)),
                          start=prev, method="newton" if prev is not None else "L-BFGS-B")
         ev = laplace_evidence(model, mp.theta, mp.log_prob)
         table.append({"tau": float(tau), "log_evidence": ev, "log_prob": float(mp.log_prob), "mp": mp})
@@ -472,7 +472,7 @@ def _resample(draws: np.ndarray, log_weights: np.ndarray, n: int, rng) -> np.nda
 def _laplace_draws(model, lap, *, seed: int, ndraws: int):
     """Draws from the Laplace Gaussian and their log importance weights (posterior over Gaussian)."""
 
-    rng = rng_for(seed, "laplace-draws")
+    rng = rng_for(seed, Stream.LAPLACE_DRAWS)
     chol = np.linalg.cholesky(lap.cov)
     z = rng.standard_normal((ndraws, lap.mean.size))
     draws = lap.mean + z @ chol.T
@@ -547,7 +547,7 @@ m SE}_\Delta)` nats).  If no adequate candidate is
     candidates : sequence of ModelSpec or str, or a selection spec
         Simplest first (the last is the most flexible).
     seed : int
-        Root seed; candidate ``name`` uses ``int_seed_for(seed, "select", name)``.
+        Root seed; candidate ``name`` uses ``int_seed_for(seed, Stream.SELECT, name)``.
     margin, margin_se : float
         The LOO rule.
     min_ess, max_steps, chunk, nwalkers, moves, progress
@@ -610,7 +610,7 @@ m SE}_\Delta)` nats).  If no adequate candidate is
     for spec, name in zip(candidates, names):
         t1 = time.perf_counter()
         model = factory(spec, data)
-        cseed = int_seed_for(seed, "select", name)
+        cseed = int_seed_for(seed, Stream.SELECT, name)
         info = {}
         if scoring == "emcee":
             result: FitResult = fit(model, seed=cseed, sample=True, nstarts=nstarts + 2, min_ess=min_ess,
@@ -667,7 +667,7 @@ m SE}_\Delta)` nats).  If no adequate candidate is
                                                                             else {})}
                 if name != top and not both_undefined and not (z <= adequacy_fraction):
                     ok = False
-        p_shape = (info.get("shape") or {}).get("p_value")
+        p_shape = info["shape"].p_value if "shape" in info else None
         if name != top and p_shape is not None and p_shape < P_WARN:
             ok = False
         adequacy[name] = (ok, qsum, p_shape)

@@ -26,6 +26,7 @@ from comest_bayes.inject.kspace import buldisk_k, buldisk_radius_per_hlr, devauc
 from comest_bayes.inject.population import draw_parameters, fit_observed_population
 from comest_bayes.inject.psfmodel import make_psf, psf_half_light_radius_pix
 from comest_bayes.inject.profiles import _radius_per_hlr as _sersic_radius_per_hlr, source_profile
+from comest_bayes.seeding import rng_for
 
 __all__ = ["TRUTH_COLUMNS", "FLAG_MASKED", "FLAG_OFF_IMAGE", "FLAG_DRAW_ERROR", "MAX_FFT_SIZE",
            "make_truth", "render_truth", "SIZED_KINDS", "SEPARATION_HLR", "STAMP_FLUX_FRACTION",
@@ -795,8 +796,8 @@ def render_truth(base_image, truth: Table, *, psf, config: InjectionConfig, pixe
     gain : float, optional
         Electrons per image unit; photon noise is added only when given (and
         ``config.photon_noise``).
-    rng_seed : int or numpy.random.SeedSequence
-        Seed of the photon noise (the only randomness here).
+    rng_seed : comest_bayes.seeding.Seed
+        Seed of the photon noise (the only randomness here): a non-negative int or a SeedSequence.
     cosmos : CosmosSample, optional
         Required for ``cosmos`` rows.
     wcs : astropy.wcs.WCS, optional
@@ -843,7 +844,7 @@ def render_truth(base_image, truth: Table, *, psf, config: InjectionConfig, pixe
             raise InputError(f"the truth fluxes do not follow its magnitudes with zero point {zeropoint}; "
                              f"the truth was made with another zero point.")
     use_noise = bool(config.photon_noise) and gain is not None and np.isfinite(gain) and gain > 0
-    noise_rng = np.random.default_rng(rng_seed) if use_noise else None
+    noise_rng = rng_for(rng_seed) if use_noise else None  # the numbers of numpy.random.default_rng(rng_seed)
 
     ny, nx = image.shape
     psf_pix = galsim.PixelScale(pixel_scale).toImage(psf)

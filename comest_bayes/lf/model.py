@@ -21,7 +21,7 @@ from comest_bayes.lf import MODES
 from comest_bayes.lf.result import LFResult, PERCENTILES
 from comest_bayes.bayes.outcomes import Covariates
 from comest_bayes.bayes.inference import fit
-from comest_bayes.seeding import int_seed_for, rng_for
+from comest_bayes.seeding import Stream, int_seed_for, rng_for
 from comest_bayes.bayes.model import cell_logs
 
 __all__ = ['LFInputs', 'LFModel', 'build_inputs', 'completeness_arrays', 'expected_bins', 'fit_counts', 'effective_area', 'LFWarning']
@@ -326,7 +326,7 @@ class LFModel:
         self.joint = post is not None
         self.depth_nodes = None
         self._per_object = False
-        self._rng = rng_for(seed, "lf-initial")
+        self._rng = rng_for(seed, Stream.LF_INITIAL)
         lo_b, hi_b = counts.prior_box()
         self._lo_b, self._hi_b = lo_b, hi_b
         dt = inputs.dt
@@ -689,7 +689,7 @@ def fit_counts(inputs: LFInputs, counts, *, mode: str = "joint", post=None, f_fi
     diag: dict = {}
     if mode == "fixed":
         model = LFModel(counts, inputs, f_obj=f_obj_med, f_bar=fbar_med, seed=seed)
-        res = fit(model, seed=int_seed_for(seed, "lf", "fixed"), min_ess=min_ess, max_steps=max_steps,
+        res = fit(model, seed=int_seed_for(seed, Stream.LF, Stream.LF_FIXED), min_ess=min_ess, max_steps=max_steps,
                   sampler=sampler)
         samples = res.draws()
         diag = res.posterior.diagnostics.to_dict() if res.posterior is not None else {}
@@ -700,14 +700,14 @@ def fit_counts(inputs: LFInputs, counts, *, mode: str = "joint", post=None, f_fi
         model = LFModel(counts, inputs, post=post, prior_mean=mu, prior_cov=cov, seed=seed)
         # two MAP starts (as each fit of the marginal mode): initial() sits at the completeness prior's mean,
         # near the joint MAP; six (the default) cost a minute on a demo tile for the same optimum
-        res = fit(model, seed=int_seed_for(seed, "lf", "joint"), nstarts=2, min_ess=min_ess, max_steps=max_steps,
+        res = fit(model, seed=int_seed_for(seed, Stream.LF, Stream.LF_JOINT), nstarts=2, min_ess=min_ess, max_steps=max_steps,
                   sampler=sampler)
         draws = res.draws()
         samples, comp_samples = draws[:, :counts.ndim], draws[:, counts.ndim:]
         diag = res.posterior.diagnostics.to_dict() if res.posterior is not None else {}
         log(f"lf: joint with {len(mu)} completeness parameters: {len(samples)} draws, {res.seconds:.1f} s")
     else:
-        rng = rng_for(seed, "lf", "marginal-draws")
+        rng = rng_for(seed, Stream.LF, Stream.LF_MARGINAL_DRAWS)
         pick = rng.choice(len(post.samples), size=min(ncomp, len(post.samples)), replace=False)
         base = None
         per, per_diag = [], []
@@ -718,7 +718,7 @@ def fit_counts(inputs: LFInputs, counts, *, mode: str = "joint", post=None, f_fi
                 model = base
             else:
                 model = base.with_completeness(f_obj[0], f_bar[0])
-            res = fit(model, seed=int_seed_for(seed, "lf", "marginal", k), nstarts=2,
+            res = fit(model, seed=int_seed_for(seed, Stream.LF, Stream.LF_MARGINAL, k), nstarts=2,
                       min_ess=max(100.0, min_ess / len(pick)), max_steps=max_steps, sampler=sampler)
             per.append(res.draws())
             if res.posterior is not None:

@@ -19,7 +19,7 @@ from __future__ import annotations
 
 import math
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 import warnings
 
 import numpy as np
@@ -27,7 +27,7 @@ from astropy.table import Table, vstack
 
 from comest_bayes.inject.design import (DEFAULT_UNIFORM_SHARE, TARGETS, MagnitudeDesign, curves_at, design_from_draws, uniform_design)
 from comest_bayes.errors import InputError
-from comest_bayes.seeding import rng_for, int_seed_for
+from comest_bayes.seeding import Stream, rng_for, int_seed_for
 from comest_bayes.ratios import binned as R
 from comest_bayes.config import RunConfig
 from comest_bayes.bayes.fit import fit_kind, warm_state
@@ -285,7 +285,7 @@ def run_sequential(simulate, fit, lo: float, hi: float, settings: AdaptiveSettin
             table, recorded = done[k]
             check_recorded(recorded, design, k)
         else:
-            mags = design.sample(n, rng_for(seed, "design", k))
+            mags = design.sample(n, rng_for(seed, Stream.DESIGN, k))
             table = simulate(mags, k)
         t_sim = time.perf_counter() - t0
         tables.append(table)
@@ -346,7 +346,7 @@ def package_fitter(*, image_shape, noise, mask, lo: float, hi: float, seed: int,
             warnings.simplefilter("ignore")
             post, entry = fit_kind(table, kind=kind, quantity="completeness",
                                    requested=model if warm is None else warm["model"],
-                                   config=RunConfig(seed=int_seed_for(seed, "design-fit", k)),
+                                   config=RunConfig(seed=int_seed_for(seed, Stream.DESIGN_FIT, k)),
                                    image_shape=image_shape, noise=noise, mask=mask, wcs_header=None,
                                    mag_range=(lo, hi), mag_centers=centers, warm=warm)
             curves = post.average_curve(grid, nsamples=nsamples)
@@ -354,8 +354,8 @@ def package_fitter(*, image_shape, noise, mask, lo: float, hi: float, seed: int,
         if warm is None:
             state["selected_at"] = n
         state["warm"] = warm_state(post)
-        entry["warm_refit"] = warm is not None
-        converged = bool((entry.get("diagnostics") or {}).get("converged", True))
+        entry = replace(entry, warm_refit=warm is not None)
+        converged = bool(entry.diagnostics.get("converged", True))
         return (PosteriorView(grid=grid, curves=curves, m50=np.asarray(m50, float), converged=converged),
                 (post, entry))
 

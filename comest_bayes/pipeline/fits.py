@@ -12,13 +12,14 @@ import math
 import time
 import traceback
 import warnings
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
 from astropy.io import fits
 from astropy.table import Table
 
-from comest_bayes.bayes.fit import MIN_CLASS, fit_kind, footprint_grid, needs_smooth, purity_outcomes
+from comest_bayes.bayes.fit import MIN_CLASS, FitEntry, fit_kind, footprint_grid, needs_smooth, purity_outcomes
 from comest_bayes.bayes.spec import load_spec
 from comest_bayes.config import RunConfig
 from comest_bayes.errors import InputError
@@ -40,8 +41,8 @@ def fit_task(task: dict) -> tuple:
     ``task`` holds ``run_dir``, ``kind``, ``quantity``, ``requested``, ``config``, ``image_shape``,
     ``wcs_header``, ``mag_range``, ``mag_centers`` and optionally ``shared_maps``
     (:func:`comest_bayes.bayes.fit.shared_maps`: what every fit of the run takes from the noise map and mask, computed
-    once).  Returns ``(posterior or None, entry)``; the posterior is returned without its compiled
-    model.
+    once).  Returns ``(posterior or None, FitEntry)``; the posterior is returned without its compiled
+    model, the entry with the task's warnings and CPU seconds.
     """
     c0 = time.process_time()
     run = Path(task["run_dir"])
@@ -57,9 +58,9 @@ def fit_task(task: dict) -> tuple:
         nreal = int(np.sum(table["real"]))
         nfalse = len(table) - nreal
         if min(nreal, nfalse) < MIN_CLASS:
-            return None, {"name": None, "requested": task["requested"], "cpu_seconds": 0.0,
-                          "skipped": f"{nreal} real and {nfalse} false detections: a purity model needs at least "
-                                     f"{MIN_CLASS} of each; see the binned purity"}
+            return None, FitEntry(name=None, requested=task["requested"], cpu_seconds=0.0,
+                                  skipped=f"{nreal} real and {nfalse} false detections: a purity model needs at "
+                                          f"least {MIN_CLASS} of each; see the binned purity")
     shared = task.get("shared_maps") or {}
     footprints, noise_grid = shared.get("footprints") or {}, shared.get("noise_grid")
     # the noise map is only read when the run did not pass the footprint histogram this fit needs and the grid
@@ -73,8 +74,8 @@ def fit_task(task: dict) -> tuple:
                                wcs_header=task["wcs_header"], mag_range=task["mag_range"],
                                mag_centers=task["mag_centers"], outcome_column=outcome_column,
                                footprints=footprints, noise_grid=noise_grid)
-    entry["warnings"] = sorted(set(entry.get("warnings", [])) | {str(w.message) for w in caught})
-    entry["cpu_seconds"] = round(time.process_time() - c0, 3)
+    entry = replace(entry, warnings=tuple(sorted(set(entry.warnings) | {str(w.message) for w in caught})),
+                    cpu_seconds=round(time.process_time() - c0, 3))
     post.use_model(None)  # the compiled model stays in this process
     return post, entry
 
@@ -235,12 +236,11 @@ def fit_outcome_file(path, out, *, kind: str = "injections", model: str = "auto"
     binned = R.completeness(mags, np.asarray(table["detected"]).astype(bool), edges)
     (out / layout.POSTERIOR_DIR).mkdir(exist_ok=True)
     post.save(out / layout.posterior(kind))
-    entry["posterior_file"] = layout.posterior(kind)
-    entry["footprint"] = footprint
-    summary = {"source": str(path), "kinds": {kind: {"completeness": binned.to_dict(), "model": entry}}}
+    record = {**entry.to_dict(), "posterior_file": layout.posterior(kind), "footprint": footprint}
+    summary = {"source": str(path), "kinds": {kind: {"completeness": binned.to_dict(), "model": record}}}
 
     ax = ratio_curve(BinnedCurve(binned.centers, binned.ratio, binned.lower, binned.upper, binned.n),
-                     posterior=PosteriorBand.from_dict(entry["curve"], label=entry["name"]))
+                     posterior=PosteriorBand.from_dict(entry.curve, label=entry.name))
     ax.set_title(f"{kind}: {len(table)} injections from {path.name}")
     (out / layout.FIGURES_DIR).mkdir(exist_ok=True)
     save_figure(ax.figure, out / layout.FIGURES_DIR / f"{kind}_completeness")

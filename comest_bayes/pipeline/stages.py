@@ -28,7 +28,7 @@ from comest_bayes.detect.sep_backend import DetectionResult, detect, filter_kern
 from comest_bayes.errors import ComestError, ConfigError, DetectionOverflowError, InputError
 from comest_bayes.io.image import ImageData, load_image
 from comest_bayes.io.rundir import RunDirectory, file_checksum, atomic_path
-from comest_bayes.seeding import seed_sequence, int_seed_for
+from comest_bayes.seeding import Stream, seed_sequence, int_seed_for
 from comest_bayes.io.jsonio import dumps
 from comest_bayes.io import layout
 from comest_bayes.pipeline.preflight import SMALLEST_SEEING_PIX, budget_warnings, check_injection_count, check_memory, choose_densities, FEW_USABLE_INJECTIONS
@@ -344,7 +344,7 @@ def _run_pipeline(options: ImageOptions, config: RunConfig, out_dir, *, log, com
             det = _load_detection(run, image)
         t0 = time.perf_counter()
         sf = build_source_free(image.data, det, mask=image.mask, fwhm=float(fwhm["fwhm"]), config=config.sourcefree,
-                               seed=seed_sequence(config.seed, "sourcefree"))
+                               seed=seed_sequence(config.seed, Stream.SOURCEFREE))
         sf_seconds = time.perf_counter() - t0
         replacement = judge_replacement(sf.meta, on=config.injection.on, warn_fraction=config.sourcefree.warn_replaced,
                                         max_fraction=config.sourcefree.max_replaced)
@@ -555,9 +555,9 @@ def _injection_stages(run: RunDirectory, image: ImageData, det: DetectionResult,
             log(f"warning: no realization of kind {kind!r} finished; it is left out of {layout.SUMMARY}")
             continue
         merged = merge_realizations(sims, kind, done)
-        stage_seconds[kind] = merged.pop("seconds")
+        stage_seconds[kind] = merged.seconds
         for name in layout.CATALOGS:
-            run.write_table(layout.catalog(kind, name), set_image_units(merged[name], image.bunit))
+            run.write_table(layout.catalog(kind, name), set_image_units(merged.table(name), image.bunit))
         comp = kind_binned(merged, edges, config)["completeness"]
         m50 = R.magnitude_at(comp, 0.5)
         map_edges = (np.asarray(config.ratios.map_mag_edges, float) if config.ratios.map_mag_edges
@@ -572,11 +572,11 @@ def _injection_stages(run: RunDirectory, image: ImageData, det: DetectionResult,
         kinds[kind]["seconds"] = {k: round(v, 2) for k, v in stage_seconds[kind].items()}
         if kind == "point":
             stars = (run.stage_info("fwhm").get("estimate") or {}).get("star_rows")
-            kinds[kind]["size_check"] = _point_size_check(image, det, merged["matched"], log, star_rows=stars)
+            kinds[kind]["size_check"] = _point_size_check(image, det, merged.matched, log, star_rows=stars)
         c = kinds[kind]["counts"]
         # a realization may draw no injection at all (small field, low density): a valid result
-        nempty = len(done) - len(np.unique(np.asarray(merged["injected"]["realization"]))) \
-            if len(merged["injected"]) else len(done)
+        nempty = len(done) - len(np.unique(np.asarray(merged.injected["realization"]))) \
+            if len(merged.injected) else len(done)
         log(f"ratios: {kind}: {c['detected']}/{c['usable']} usable injections detected, {c['false']} false "
             f"detections; binned m50 = {kinds[kind]['m50_binned'] if kinds[kind]['m50_binned'] is None else round(kinds[kind]['m50_binned'], 2)}"
             + (f"; {nempty} of {len(done)} realizations held no injection" if nempty else ""))
@@ -743,7 +743,7 @@ def _adaptive_injection(run: RunDirectory, ctx, config: RunConfig, compute: "Com
         state[kind] = {"n": 0, "design": uniform_design(lo, hi), "batches": [], "done": False, "reached": False,
                        "reason": "", "outcomes": [],
                        "fit": package_fitter(image_shape=noise.shape, noise=noise, mask=mask, lo=lo, hi=hi,
-                                             seed=int_seed_for(config.seed, "adaptive", kind), model=model, kind=kind,
+                                             seed=int_seed_for(config.seed, Stream.ADAPTIVE, kind), model=model, kind=kind,
                                              mag_bin=config.ratios.mag_bin, magnitudes=mags_f)}
     goal = (f"the posterior sd of f at {', '.join(f'{m:.2f}' for m in mags_f)} mag is <= {ad.precision}" if at_f
             else f"the 68% half-width of m50 is <= {ad.precision} mag")
@@ -787,14 +787,14 @@ def _adaptive_injection(run: RunDirectory, ctx, config: RunConfig, compute: "Com
             st = state[kind]
             st["n"] = end
             # only this batch's realizations are read; the outcome table is the stack of every batch's
-            st["outcomes"].append(merge_realizations(sims, kind, range(start, end))["outcomes"])
+            st["outcomes"].append(merge_realizations(sims, kind, range(start, end)).outcomes)
             outcomes = vstack(st["outcomes"], metadata_conflicts="silent")
             c0 = time.process_time()
             view, (post, entry) = st["fit"](outcomes, k)
             cpu["design_fit"] = cpu.get("design_fit", 0.0) + time.process_time() - c0
             half = view.m50_halfwidth
             rec = {"batch": k, "realizations": [start, end], "injections": int(len(outcomes)),
-                   "design": st["design"].target, "model": entry["name"], "warm_refit": entry["warm_refit"],
+                   "design": st["design"].target, "model": entry.name, "warm_refit": entry.warm_refit,
                    "within_0.6_of_m50": (round(st["design"].fraction_within(view.m50_median - 0.6,
                                                                             view.m50_median + 0.6), 3)
                                          if math.isfinite(view.m50_median) else None),
@@ -808,7 +808,7 @@ def _adaptive_injection(run: RunDirectory, ctx, config: RunConfig, compute: "Com
                 f"{rec['injections']} injections, m50 "
                 + ("undefined" if rec["m50"] is None else f"{rec['m50']:.3f} +- {half:.4f}")
                 + ("; f " + ", ".join(f"{v:.3f} +- {e:.4f}" for v, e in zip(rec["f"], rec["f_sd"])) if at_f else "")
-                + f" (target {ad.precision}; {entry['name']})")
+                + f" (target {ad.precision}; {entry.name})")
             reached, reason, nxt = after_batch(view, lo, hi, precision=ad.precision, at_cap=end >= ad.max_nsims,
                                                spent=f"{end} realizations, {rec['injections']} injections",
                                                target=ad.target, uniform_share=ad.uniform_share, magnitudes=mags_f)
@@ -892,13 +892,14 @@ def _fit_stages(run: RunDirectory, image: ImageData, det: DetectionResult, confi
     def record(task, result):
         post, entry = result
         kind, quantity = task["kind"], task["quantity"]
-        cpu["fit"] = cpu.get("fit", 0.0) + float(entry.get("cpu_seconds", 0.0))
+        cpu["fit"] = cpu.get("fit", 0.0) + float(entry.cpu_seconds or 0.0)
         key = "model" if quantity == "completeness" else "purity_model"
         files = []
+        record = entry.to_dict()  # the summary.json entry: the fit's, and the files written here
         if post is not None:
             files.append(str(post.save(run.file(layout.posterior(kind, quantity))).relative_to(run.path)))
-            entry["posterior_file"] = files[0]
-            entry["m50_map_file"] = None
+            record["posterior_file"] = files[0]
+            record["m50_map_file"] = None
             if quantity == "completeness" and post.spec.spatial != "none":
                 step = max(1, int(round(config.fit.map_step_arcmin * 60.0 / image.pixel_scale)))
                 med, sd, header = post.m50_map(step)
@@ -908,22 +909,22 @@ def _fit_stages(run: RunDirectory, image: ImageData, det: DetectionResult, confi
                 name = layout.m50_map(kind)
                 with atomic_path(run.file(name)) as tmp:
                     hdul.writeto(tmp)
-                entry["m50_map_file"] = name
+                record["m50_map_file"] = name
                 files.append(name)
-        run.record_stage(f"fit_{quantity}_{kind}", files=files, seconds=entry.get("seconds", 0.0), entry=entry,
+        run.record_stage(f"fit_{quantity}_{kind}", files=files, seconds=entry.seconds or 0.0, entry=record,
                          counts=kinds[kind].get("counts"))
-        kinds[kind][key] = entry
+        kinds[kind][key] = record
         if post is None:
-            log(f"fit: {kind} {quantity}: skipped ({entry['skipped']})")
+            log(f"fit: {kind} {quantity}: skipped ({entry.skipped})")
             return
-        for w in entry.get("warnings", []):
+        for w in entry.warnings:
             log(f"warning: {kind} {quantity}: {w}")
-        m50 = entry.get("m50", {})
+        m50 = entry.magnitudes.get("m50", {})
         med = m50.get("median")
-        chosen = entry["name"] + (" (selected)" if entry.get("selection") else "")
+        chosen = entry.name + (" (selected)" if entry.selection else "")
         log(f"fit: {kind} {quantity}: {chosen}, m50 = "
             + ("n/a" if med is None else f"{med:.2f} (+{m50['hi68'] - med:.2f}/-{med - m50['lo68']:.2f})")
-            + f", ESS {float(np.min(entry['diagnostics'].get('ess') or [0])):.0f}, {entry['seconds']:.1f} s")
+            + f", ESS {float(np.min(entry.diagnostics.get('ess') or [0])):.0f}, {entry.seconds:.1f} s")
 
     def on_group(group, results):
         for task, result in zip(group, results):

@@ -6,12 +6,17 @@ The format of ``summary.json`` (version 1; keys are stable, new keys may be adde
 
 from __future__ import annotations
 
+from typing import TYPE_CHECKING
+
 import numpy as np
 from astropy.io import fits
 
 from comest_bayes.ratios import binned as R
 from comest_bayes.config import RunConfig
 from comest_bayes.ratios.depth import histogram_completeness, limiting_magnitude, point_source_depth, point_source_depth_nea
+
+if TYPE_CHECKING:
+    from comest_bayes.recover.realization import MergedCatalogs
 
 __all__ = ["kind_summary", "maps_hdulist", "map_cube_header", "depth_summary", "SUMMARY_FORMAT"]
 
@@ -39,9 +44,9 @@ def _uncounted(det) -> np.ndarray:
     return out
 
 
-def kind_binned(merged: dict, edges: np.ndarray, config: RunConfig) -> dict:
+def kind_binned(merged: "MergedCatalogs", edges: np.ndarray, config: RunConfig) -> dict:
     """Completeness, purity and detection rate of one kind (``BinnedRatio`` objects)."""
-    truth, det = merged["injected"], merged["detections"]
+    truth, det = merged.injected, merged.detections
     conf, interval = config.ratios.confidence, config.ratios.interval
     usable = np.asarray(truth["usable"], bool)
     detected = np.asarray(truth["detected"], bool)
@@ -58,10 +63,10 @@ def kind_binned(merged: dict, edges: np.ndarray, config: RunConfig) -> dict:
     return {"completeness": comp, "purity": pur, "detection_rate": rate}
 
 
-def kind_summary(merged: dict, edges: np.ndarray, config: RunConfig, *, nreal: int, maps_file: str | None,
+def kind_summary(merged: "MergedCatalogs", edges: np.ndarray, config: RunConfig, *, nreal: int, maps_file: str | None,
                  map_edges=None) -> dict:
     """The ``summary.json`` entry of one kind."""
-    truth, det = merged["injected"], merged["detections"]
+    truth, det = merged.injected, merged.detections
     b = kind_binned(merged, edges, config)
     binned = {"mag_edges": b["completeness"].to_dict()["edges"], "mag_centers": b["completeness"].to_dict()["centers"]}
     for name, br in b.items():
@@ -86,7 +91,7 @@ def kind_summary(merged: dict, edges: np.ndarray, config: RunConfig, *, nreal: i
     return out
 
 
-def maps_hdulist(merged: dict, *, image_shape, pixel_scale: float, wcs, config: RunConfig, mag_edges) -> fits.HDUList:
+def maps_hdulist(merged: "MergedCatalogs", *, image_shape, pixel_scale: float, wcs, config: RunConfig, mag_edges) -> fits.HDUList:
     """Completeness and purity maps f(x, y, m) as FITS cubes with the binned grid's WCS.
 
     HDUs: ``COMPLETENESS``, ``COMPLETENESS_N``, ``COMPLETENESS_LO``,
@@ -98,7 +103,7 @@ def maps_hdulist(merged: dict, *, image_shape, pixel_scale: float, wcs, config: 
     ``MAG_EDGES``, lists the planes' edges (columns ``plane``, ``mag_lo``,
     ``mag_hi``).
     """
-    truth, det = merged["injected"], merged["detections"]
+    truth, det = merged.injected, merged.detections
     bin_pix = R.map_bin_pixels(config.ratios.map_bin_arcmin, pixel_scale)
     conf, interval = config.ratios.confidence, config.ratios.interval
     usable = np.asarray(truth["usable"], bool)

@@ -23,7 +23,7 @@ from astropy.wcs import WCS
 from comest_bayes.config import DetectionConfig, InjectionConfig, MatchingConfig
 from comest_bayes.errors import InputError
 from comest_bayes.recover.matching import classify_detections, match_one_to_one
-from comest_bayes.seeding import int_seed_for, rng_for
+from comest_bayes.seeding import Stream, int_seed_for, rng_for
 from comest_bayes.io import layout
 from comest_bayes.inject.psfmodel import make_psf
 from comest_bayes.inject.cosmos import load_cosmos
@@ -32,7 +32,7 @@ from comest_bayes.inject.render import make_truth, render_truth
 from comest_bayes.inject.design import MagnitudeDesign
 from comest_bayes.io.rundir import atomic_path
 
-__all__ = ["SimContext", "RealizationTask", "RealizationResult", "run_realization", "merge_realizations",
+__all__ = ["SimContext", "RealizationTask", "RealizationResult", "MergedCatalogs", "run_realization", "merge_realizations",
            "realization_file", "OUTCOME_COLUMNS"]
 
 #: Measured columns copied from the detection catalog next to each injection (prefixed ``det_``).
@@ -220,13 +220,13 @@ def _run_realization(task: RealizationTask) -> RealizationResult:
 
         design = MagnitudeDesign.from_dict(task.design)
     truth = make_truth(kind, shape=base.shape, mask=mask, pixel_scale=ctx.pixel_scale, fwhm_pix=ctx.fwhm,
-                       config=ctx.injection, mag_range=ctx.mag_range, rng=rng_for(ctx.root_seed, "inject", kind, index),
+                       config=ctx.injection, mag_range=ctx.mag_range, rng=rng_for(ctx.root_seed, Stream.INJECT, kind, index),
                        wcs=ctx.wcs, zeropoint=ctx.zeropoint, observed_catalog=observed, cosmos=cosmos, psf=psf,
                        mag_design=design)
     t1 = time.perf_counter()
     image, truth = render_truth(base, truth, psf=psf, config=ctx.injection,
                                 pixel_scale=ctx.pixel_scale, gain=ctx.gain, zeropoint=ctx.zeropoint,
-                                rng_seed=int_seed_for(ctx.root_seed, "render", kind, index), cosmos=cosmos,
+                                rng_seed=int_seed_for(ctx.root_seed, Stream.RENDER, kind, index), cosmos=cosmos,
                                 wcs=ctx.wcs)
     t2 = time.perf_counter()
     seconds = {"make": t1 - t0, "render": t2 - t1}
@@ -333,7 +333,64 @@ def _table_with_units(hdu) -> Table:
     return table
 
 
-def merge_realizations(directory, kind: str, indices) -> dict:
+@dataclass(frozen=True)
+class MergedCatalogs:
+    """The tables of one kind over its realizations: what the recover stage hands to the ratios and the fits.
+
+    Made by :func:`merge_realizations` (or :meth:`from_tables`).  The five catalogs of
+    :data:`comest_bayes.io.layout.CATALOGS` are written as ``catalogs/<kind>_<name>.fits``
+    (:meth:`table`); classes of detections and usable injections: ``docs/injection.md``.
+
+    Attributes
+    ----------
+    injected : Table
+        Every injection (truth rows with ``detected``, ``usable`` and the measured ``det_*`` columns).
+    matched : Table
+        The injections matched one to one to a detection.
+    unmatched : Table
+        The injections not detected.
+    false : Table
+        Detections matched to no injection, neither pre-existing nor near an unusable injection.
+    outcomes : Table
+        One row per usable injection with the columns of :data:`OUTCOME_COLUMNS`: what the
+        completeness model fits.
+    detections : Table
+        Every detection of every realization (with ``matched``, ``preexisting``, ``near_unusable``,
+        ``false``).
+    seconds : dict
+        Seconds the realizations spent per step (their ``T_*`` header cards, summed).
+    """
+
+    injected: Table
+    matched: Table
+    unmatched: Table
+    false: Table
+    outcomes: Table
+    detections: Table
+    seconds: dict = field(default_factory=dict)
+
+    @classmethod
+    def from_tables(cls, truth: Table, detections: Table, seconds: dict | None = None) -> "MergedCatalogs":
+        """The catalogs of stacked truth and detection tables (as a realization writes them)."""
+        detected = np.asarray(truth["detected"], bool)
+        usable = np.asarray(truth["usable"], bool)
+        keep = [c for c in OUTCOME_COLUMNS if c in truth.colnames]
+        outcomes = truth[usable][keep]
+        for name, desc in OUTCOME_COLUMNS.items():
+            if name in outcomes.colnames:
+                outcomes[name].description = desc
+        return cls(injected=truth, matched=truth[detected], unmatched=truth[~detected],
+                   false=detections[np.asarray(detections["false"], bool)], outcomes=outcomes,
+                   detections=detections, seconds=dict(seconds or {}))
+
+    def table(self, name: str) -> Table:
+        """The catalog ``name`` (one of :data:`comest_bayes.io.layout.CATALOGS`)."""
+        if name not in layout.CATALOGS:
+            raise KeyError(f"no merged catalog {name!r}; the catalogs are {layout.CATALOGS}")
+        return getattr(self, name)
+
+
+def merge_realizations(directory, kind: str, indices) -> MergedCatalogs:
     """Read the realizations of one kind and build the four catalogs plus the outcome table."""
     truths, dets, seconds = [], [], {}
     for i in indices:
@@ -350,16 +407,4 @@ def merge_realizations(directory, kind: str, indices) -> dict:
         for name in t.colnames:
             if t[name].dtype.kind == "S":
                 t[name] = np.char.decode(t[name])
-    detected = np.asarray(truth["detected"], bool)
-    injected = truth
-    matched = truth[detected]
-    unmatched = truth[~detected]
-    false = det[np.asarray(det["false"], bool)]
-    usable = np.asarray(truth["usable"], bool)
-    keep = [c for c in OUTCOME_COLUMNS if c in truth.colnames]
-    outcomes = truth[usable][keep]
-    for name, desc in OUTCOME_COLUMNS.items():
-        if name in outcomes.colnames:
-            outcomes[name].description = desc
-    return {"injected": injected, "matched": matched, "unmatched": unmatched, "false": false,
-            "outcomes": outcomes, "detections": det, "seconds": seconds}
+    return MergedCatalogs.from_tables(truth, det, seconds)

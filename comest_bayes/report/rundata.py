@@ -21,7 +21,7 @@ from comest_bayes.io.run import Run
 from comest_bayes.bayes.posterior import CompletenessPosterior
 from comest_bayes.recover.realization import realization_file
 from comest_bayes.inject.render import render_truth
-from comest_bayes.seeding import int_seed_for
+from comest_bayes.seeding import Stream, int_seed_for
 from comest_bayes.inject.cosmos import load_cosmos
 from comest_bayes.inject.psfmodel import make_psf
 from comest_bayes.pipeline.stages import ImageOptions
@@ -225,7 +225,7 @@ def simulated_image(run: Run, kind: str, index: int = 0, *, prefer_saved: bool =
     cosmos = load_cosmos(config.injection) if kind == "cosmos" else None
     image, _ = render_truth(base, truth, psf=psf, config=config.injection,
                             pixel_scale=float(facts["pixel_scale_arcsec"]), gain=facts.get("gain"),
-                            zeropoint=facts.get("zeropoint"), rng_seed=int_seed_for(config.seed, "render", kind, index),
+                            zeropoint=facts.get("zeropoint"), rng_seed=int_seed_for(config.seed, Stream.RENDER, kind, index),
                             cosmos=cosmos, wcs=wcs)
     return image, "re-rendered"
 

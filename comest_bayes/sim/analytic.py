@@ -16,7 +16,7 @@ from scipy import ndimage, optimize, signal, special
 
 from comest_bayes.constants import FWHM_PER_SIGMA
 from comest_bayes.errors import InputError
-from comest_bayes.seeding import rng_for
+from comest_bayes.seeding import Stream, rng_for
 
 __all__ = [
     "AnalyticPrediction",
@@ -631,7 +631,7 @@ def detection_probability_mc(mag, *, zeropoint: float, sigma: float, fwhm_pix: f
     h = int(patch)
     # white noise on a patch padded by the kernel half-width, convolved: exact filtered noise on the patch
     ky, kx = k.shape[0] // 2, k.shape[1] // 2
-    rng = rng_for(seed, "analytic-noise")
+    rng = rng_for(seed, Stream.ANALYTIC_NOISE)
     if noise_acf is None:
         white = rng.standard_normal((int(nsamples), 2 * (h + ky) + 1, 2 * (h + kx) + 1))
         noise = np.stack([signal.convolve2d(w, k, mode="valid") for w in white])  # (n, 2h+1, 2h+1), unit sigma

@@ -23,7 +23,7 @@ from scipy import stats
 from comest_bayes.errors import InputError, RunDirectoryError
 from comest_bayes.inject.profiles import sersic_b
 from comest_bayes.io.rundir import atomic_path
-from comest_bayes.seeding import rng_for
+from comest_bayes.seeding import Stream, rng_for
 
 __all__ = [
     "DemoTile",
@@ -284,7 +284,7 @@ def _sample_positions(rng, n: int, size: int) -> tuple[np.ndarray, np.ndarray]:
 
 
 def _galaxy_catalog(spec: _Spec, seed: int, mag_faint: float) -> dict:
-    rng = rng_for(seed, "demo", "galaxies")
+    rng = rng_for(seed, Stream.DEMO, Stream.DEMO_GALAXIES)
     mag = _sample_galaxy_mags(rng, spec, mag_faint)
     n = mag.size
     x, y = _sample_positions(rng, n, spec.size)
@@ -311,13 +311,13 @@ def _galaxy_catalog(spec: _Spec, seed: int, mag_faint: float) -> dict:
 
 
 def _star_catalog(spec: _Spec, seed: int, mag_faint: float) -> dict:
-    rng = rng_for(seed, "demo", "stars")
+    rng = rng_for(seed, Stream.DEMO, Stream.DEMO_STARS)
     n_ref, slope, m_ref = spec.star_counts if spec.star_counts is not None else (STAR_DENSITY_AT_R20, STAR_SLOPE,
                                                                                20.0)
     mag = _sample_power_law(rng, n_ref, slope, m_ref, STAR_MAG_BRIGHT, mag_faint, spec.area_deg2 * spec.star_density)
     x, y = _sample_positions(rng, mag.size, spec.size)
     # Bright, saturated stars, kept away from the edges and the chip gap.
-    rng_b = rng_for(seed, "demo", "bright_stars")
+    rng_b = rng_for(seed, Stream.DEMO, Stream.DEMO_BRIGHT_STARS)
     nb = spec.n_saturated_stars
     margin = min(100.0, spec.size / 6.0)
     gx0, gx1 = spec.gap
@@ -782,7 +782,7 @@ def make_demo_tile(seed: int = 0, *, size: int = 3000, pixel_scale: float = 0.26
                      index=truth.colnames.index("flux") + 1)
     f = noise_factor_map(shape, spec.depth_gradient, spec.shallow_quadrant)
     sigma = spec.sigma0 * f
-    rng = rng_for(seed, "demo", "noise")
+    rng = rng_for(seed, Stream.DEMO, Stream.DEMO_NOISE)
     # Sky noise (sigma0 f)^2 plus source photon noise S f^2 / gain, in place to limit memory.
     var = np.maximum(src, 0.0)
     var *= f * f / spec.gain

@@ -5,7 +5,7 @@ import warnings
 import numpy as np
 import pytest
 
-from comest_bayes.bayes.checks import P_WARN, shape_check, shape_warning
+from comest_bayes.bayes.checks import P_WARN, ShapeBin, ShapeCheck, shape_check, shape_warning
 from comest_bayes.bayes.inference import fit_map, laplace
 from comest_bayes.bayes.model import CompletenessModel
 from comest_bayes.bayes.outcomes import Covariates, compress
@@ -33,13 +33,13 @@ def test_a_logistic_truth_passes_the_check():
     det = rng.random(m.size) < _logistic(m, 24.0, 0.2)
     model, draws = _fit_logistic(m, det)
     check = shape_check(model, draws, EDGES)
-    assert check["dof"] >= 8  # the transition bins; plateau bins with A = 0.98 qualify too
-    assert check["p_value"] > P_WARN
+    assert check.dof >= 8  # the transition bins; plateau bins with A = 0.98 qualify too
+    assert check.p_value > P_WARN
     assert shape_warning(check, name="logistic", kind="point", quantity="completeness") is None
     # observed and expected per bin add up to the data
-    assert sum(b["observed"] for b in check["bins"]) == int(det.sum())
-    assert sum(b["n"] for b in check["bins"]) == m.size
-    assert sum(b["expected"] for b in check["bins"]) == pytest.approx(det.sum(), rel=0.01)
+    assert sum(b.observed for b in check.bins) == int(det.sum())
+    assert sum(b.n for b in check.bins) == m.size
+    assert sum(b.expected for b in check.bins) == pytest.approx(det.sum(), rel=0.01)
 
 
 def test_a_two_population_truth_fails_the_check_and_says_so():
@@ -52,9 +52,9 @@ def test_a_two_population_truth_fails_the_check_and_says_so():
     det = rng.random(m.size) < _logistic(m, m50, 0.08)
     model, draws = _fit_logistic(m, det)
     check = shape_check(model, draws, EDGES)
-    assert check["p_value"] < 1e-6
-    assert check["max_abs_z"] > 4
-    assert 23.0 < check["mag_at_max"] < 24.4
+    assert check.p_value < 1e-6
+    assert check.max_abs_z > 4
+    assert 23.0 < check.mag_at_max < 24.4
     msg = shape_warning(check, name="logistic", kind="point", quantity="completeness")
     assert msg is not None and "binned ratios" in msg and "logistic" in msg
 
@@ -69,9 +69,9 @@ def test_certain_bins_are_left_out_and_all_detected_gives_no_verdict():
         warnings.simplefilter("ignore")
         model, draws = _fit_logistic(m, det)
     check = shape_check(model, draws[0], EDGES)  # a single parameter vector is accepted
-    assert check["dof"] == 0 and all(b["z"] is None for b in check["bins"])
-    assert check["p_value"] is None and check["chi2"] is None and check["max_abs_z"] is None
-    assert sum(b["observed"] for b in check["bins"]) == m.size
+    assert check.dof == 0 and all(b.z is None for b in check.bins)
+    assert check.p_value is None and check.chi2 is None and check.max_abs_z is None
+    assert sum(b.observed for b in check.bins) == m.size
     assert shape_warning(check, name="logistic", kind="point", quantity="completeness") is None
 
 
@@ -82,3 +82,22 @@ def test_bad_edges_are_refused(edges):
     model = CompletenessModel("logistic", compress(Covariates.make(m), m < 24.0, ddepth=None, nuv=None, dsize=None))
     with pytest.raises(ValueError, match="increasing"):
         shape_check(model, np.zeros((1, model.ndim)), edges)
+
+
+def test_the_json_form_keeps_the_published_keys_and_reads_back():
+    rng = np.random.default_rng(1)
+    m = rng.uniform(21.0, 26.0, 3000)
+    det = rng.random(m.size) < _logistic(m, 24.0, 0.2)
+    model, draws = _fit_logistic(m, det)
+    check = shape_check(model, draws, EDGES)
+    d = check.to_dict()
+    # the keys summary.json has carried under kinds.<kind>.model.shape_check since the check exists
+    assert list(d) == ["chi2", "dof", "p_value", "max_abs_z", "mag_at_max", "bins"]
+    assert len(d["bins"]) == len(EDGES) - 1
+    assert all(list(b) == ["mag", "n", "observed", "expected", "z"] for b in d["bins"])
+    assert d["dof"] == check.dof and d["bins"][3]["observed"] == check.bins[3].observed
+    assert ShapeCheck.from_dict(d) == check
+    # frozen: a stage cannot change the check it was handed
+    with pytest.raises(AttributeError):
+        check.dof = 0
+    assert isinstance(check.bins, tuple) and isinstance(check.bins[0], ShapeBin)

@@ -14,22 +14,28 @@ from outcome_truths import SHAPE, depth_split_outcomes, fit_depth_split
 def test_depth_model_recovers_the_truth_and_reports_intervals():
     table, noise_map = depth_split_outcomes(20000)
     post, entry = fit_depth_split(table, noise_map, "logistic_depth")
-    par = entry["parameters"]
+    par = entry.parameters
     # 20000 outcomes constrain m50_0 and beta_depth to ~0.01 and ~0.03: 4 posterior sd of tolerance
     for name, truth in (("m50_0", 24.0), ("beta_depth", 1.0), ("w", 0.15), ("A", 0.98)):
         sd = 0.5 * (par[name]["hi68"] - par[name]["lo68"])
         assert abs(par[name]["median"] - truth) < 4 * sd + 1e-3, (name, par[name], truth)
-    assert entry["diagnostics"]["converged"]
-    assert np.min(entry["diagnostics"]["ess"]) >= 300
+    assert entry.diagnostics["converged"]
+    assert np.min(entry.diagnostics["ess"]) >= 300
     # the completeness query at a position in the shallow half is lower than in the deep half
     deep = post.completeness(24.0, 100.0, 200.0).mean()
     shallow = post.completeness(24.0, 500.0, 200.0).mean()
     assert deep == pytest.approx(0.98 / 2, abs=0.04)
     assert shallow == pytest.approx(0.98 / (1 + np.exp(0.5 / 0.15)), abs=0.03)
     # m50 of the image-average curve lies between the two halves' m50
-    assert 23.5 < entry["m50"]["median"] < 24.0
-    assert entry["m50"]["lo68"] <= entry["m50"]["median"] <= entry["m50"]["hi68"]
-    json.dumps(entry)  # JSON-ready
+    assert 23.5 < entry.magnitudes["m50"]["median"] < 24.0
+    assert entry.magnitudes["m50"]["lo68"] <= entry.magnitudes["m50"]["median"] <= entry.magnitudes["m50"]["hi68"]
+    json.dumps(entry.to_dict())  # JSON-ready
+    # the JSON form has the keys (and order) summary.json has always had for a fit
+    d = entry.to_dict()
+    assert list(d) == ["name", "requested", "selection", "m50", "m80", "m90", "parameters", "curve", "diagnostics",
+                       "tau", "shape_check", "warnings", "n_outcomes", "n_cells", "seconds"]
+    assert d["m50"] == entry.magnitudes["m50"] and d["shape_check"] == entry.shape_check.to_dict()
+    assert d["warnings"] == list(entry.warnings) and d["n_cells"] == entry.n_cells
 
 
 def test_auto_selection_prefers_the_depth_model_when_depth_varies():
@@ -38,8 +44,8 @@ def test_auto_selection_prefers_the_depth_model_when_depth_varies():
     # the truth is a logistic whose m50 follows the depth: that rung agrees with the spline on every
     # targeted quantity (adequate) and is the simplest within the LOO margin; the logistic without
     # depth is ~180 nats worse and misses f at the probes by 2-3 of its sd
-    assert entry["selection"]["chosen"] == "logistic_depth"
-    rows = {row["name"]: row for row in entry["selection"]["table"]}
+    assert entry.selection["chosen"] == "logistic_depth"
+    rows = {row["name"]: row for row in entry.selection["table"]}
     assert list(rows)[0] == "logistic" and list(rows)[-1] == "spline_depth"
     assert rows["logistic"]["delta_elpd"] < -50 and not rows["logistic"]["adequate"]
     assert rows["logistic_depth"]["adequate"] and rows["spline_depth"]["adequate"]
@@ -49,7 +55,7 @@ def test_auto_selection_keeps_the_simple_model_on_uniform_depth():
     table, noise_map = depth_split_outcomes(6000, depth_slope=0.0, seed=2)
     table["noise"] = 1.0
     post, entry = fit_depth_split(table, np.ones(SHAPE), "auto", min_ess=100)
-    assert entry["selection"]["chosen"] == "logistic"
+    assert entry.selection["chosen"] == "logistic"
 
 
 @pytest.mark.parametrize("case", ["all", "none", "few"])
@@ -68,9 +74,9 @@ def test_degenerate_outcomes_give_a_finite_posterior_and_a_warning(case):
     expected = {"all": "every point outcome is positive", "none": "every point outcome is negative",
                 "few": "only 15 outcomes: the posterior of the point completeness is dominated by the priors"}[case]
     assert any(expected in str(w.message) for w in caught), [str(w.message) for w in caught]
-    assert any(expected in w for w in entry["warnings"])
+    assert any(expected in w for w in entry.warnings)
     assert np.all(np.isfinite(post.samples))
-    curve = entry["curve"]
+    curve = entry.curve
     assert all(0.0 <= v <= 1.0 for v in curve["median"])
 
 
@@ -90,7 +96,7 @@ def test_all_injections_in_one_bin_warn_that_the_shape_is_unconstrained():
     with warnings.catch_warnings(record=True):
         warnings.simplefilter("always")
         post, entry = fit_depth_split(table, noise_map, "logistic_depth", min_ess=100)
-    assert any("less than two" in w and "not constrained" in w for w in entry["warnings"])
+    assert any("less than two" in w and "not constrained" in w for w in entry.warnings)
     # and a magnitude outside the injected range is flagged as extrapolated
     assert post.extrapolated(24.5) and not post.extrapolated(23.6)
 
@@ -100,7 +106,7 @@ def test_fit_records_the_cpu_it_spent_and_the_injected_range(tmp_path):
     post, entry = fit_depth_split(table, noise_map, "logistic_depth", min_ess=100)
     lo, hi = post.meta["injected_range"]
     assert lo == pytest.approx(float(np.min(table["mag"]))) and hi == pytest.approx(float(np.max(table["mag"])))
-    assert entry["m50"]["extrapolated"] is False and entry["m50"]["lo95"] < entry["m50"]["lo68"]
+    assert entry.magnitudes["m50"]["extrapolated"] is False and entry.magnitudes["m50"]["lo95"] < entry.magnitudes["m50"]["lo68"]
 
 
 def test_a_warm_refit_equals_a_cold_fit_of_the_same_model():
@@ -117,8 +123,28 @@ def test_a_warm_refit_equals_a_cold_fit_of_the_same_model():
     assert warm["model"] == "logistic_depth" and len(warm["theta"]) == len(warm["names"])
     cold, e_cold = fit_depth_split(more, noise_map, "logistic_depth")
     hot, e_hot = fit_depth_split(more, noise_map, "logistic_depth", warm=warm)
-    sd = 0.5 * (e_cold["m50"]["hi68"] - e_cold["m50"]["lo68"])
+    sd = 0.5 * (e_cold.magnitudes["m50"]["hi68"] - e_cold.magnitudes["m50"]["lo68"])
     for key in ("median", "lo68", "hi68"):
-        assert abs(e_hot["m50"][key] - e_cold["m50"][key]) < 0.15 * sd, (key, e_hot["m50"], e_cold["m50"])
+        assert abs(e_hot.magnitudes["m50"][key] - e_cold.magnitudes["m50"][key]) < 0.15 * sd, (key, e_hot.magnitudes["m50"], e_cold.magnitudes["m50"])
     with pytest.raises(InputError, match="warm refit needs one model"):
         fit_depth_split(more, noise_map, "auto", warm=warm)
+
+
+def test_a_fit_entry_is_frozen_and_its_json_form_gains_only_the_keys_that_were_set():
+    from dataclasses import FrozenInstanceError, replace
+
+    from comest_bayes.bayes.fit import FitEntry
+
+    entry = FitEntry(name="logistic", requested="auto", magnitudes={"m50": {"median": 24.0}}, warnings=("w",),
+                     n_outcomes=10, n_cells=4, seconds=1.5)
+    with pytest.raises(FrozenInstanceError):
+        entry.name = "other"
+    d = entry.to_dict()
+    assert "cpu_seconds" not in d and "warm_refit" not in d and "skipped" not in d
+    assert d["m50"] == {"median": 24.0} and d["warnings"] == ["w"] and d["shape_check"] is None
+    # the fit stage adds its CPU time, the adaptive design whether the fit was warm: each last, as before
+    assert list(replace(entry, cpu_seconds=2.0).to_dict())[-1] == "cpu_seconds"
+    assert replace(entry, warm_refit=False).to_dict()["warm_refit"] is False
+    # a fit not run keeps the four keys of a skipped entry
+    skipped = FitEntry(name=None, requested="purity", cpu_seconds=0.0, skipped="too few")
+    assert skipped.to_dict() == {"name": None, "requested": "purity", "cpu_seconds": 0.0, "skipped": "too few"}

@@ -48,8 +48,9 @@ def test_the_worker_task_skips_a_purity_fit_with_too_few_false_detections(tmp_pa
     post, entry = fit_task({"run_dir": str(tmp_path), "kind": "point", "quantity": "purity", "requested": "purity",
                             "config": load_config(), "image_shape": (100, 100), "wcs_header": None,
                             "mag_range": (20.0, 25.0), "mag_centers": np.arange(20.05, 25.0, 0.1)})
-    assert post is None and entry["name"] is None
-    assert entry["skipped"].startswith("40 real and 3 false detections: a purity model needs at least 25 of each")
+    assert post is None and entry.name is None
+    assert entry.to_dict() == {"name": None, "requested": "purity", "cpu_seconds": 0.0, "skipped": entry.skipped}
+    assert entry.skipped.startswith("40 real and 3 false detections: a purity model needs at least 25 of each")
 
 
 def test_a_map_that_is_no_image_is_refused(tmp_path):

@@ -10,11 +10,12 @@ from scipy import stats
 
 from comest_bayes.config import load_config
 from comest_bayes.ratios.summary import depth_summary, kind_summary, map_cube_header
+from comest_bayes.recover.realization import MergedCatalogs
 
 EDGES = np.array([20.0, 21.0, 22.0, 23.0, 24.0])
 
 
-def _merged() -> dict:
+def _merged() -> MergedCatalogs:
     """Injections and detections of one kind with known counts per 1-mag bin.
 
     True magnitudes of usable injections: 4 per bin in 20-21, 21-22 and 22-23, none in 23-24; detected
@@ -39,7 +40,7 @@ def _merged() -> dict:
     det = Table({"xwin": np.linspace(3, 97, m), "ywin": np.linspace(3, 97, m), "mag_auto": mag.astype(float),
                  "matched": matched, "preexisting": pre, "near_unusable": near,
                  "false": ~matched & ~pre})
-    return {"injected": truth, "detections": det}
+    return MergedCatalogs.from_tables(truth, det)
 
 
 def _wilson(k, n, confidence=0.6827):
@@ -103,7 +104,7 @@ def test_m50_is_the_interpolated_crossing_of_one_half(entry):
     # 0.75 at 21.5 and 0.25 at 22.5: linear interpolation crosses 0.5 at 22.0
     assert entry["m50_binned"] == pytest.approx(22.0)
     merged = _merged()
-    merged["injected"]["detected"] = True  # never falls below one half: null, not a number
+    merged.injected["detected"] = True  # never falls below one half: null, not a number
     assert kind_summary(merged, EDGES, load_config(), nreal=2, maps_file=None)["m50_binned"] is None
 
 
@@ -142,3 +143,11 @@ def test_depth_summary_uses_the_unmasked_median_noise():
     assert d["histogram"] is None  # fewer than 50 detections
     no_nea = depth_summary(noise, mask, zeropoint=30.0, fwhm=3.0, det_mags=[])
     assert no_nea["point_source_5sigma"] == pytest.approx(gauss) and no_nea["psf_nea_pix"] is None
+
+
+def test_the_merged_catalogs_split_the_tables_as_the_hand_counts():
+    merged = _merged()
+    # 13 injections, 9 detected (8 usable + the unusable one), 12 usable outcomes, 8 false detections
+    assert (len(merged.injected), len(merged.matched), len(merged.unmatched)) == (13, 9, 4)
+    assert len(merged.outcomes) == 12 and merged.outcomes.colnames == ["x", "y", "mag", "detected"]
+    assert len(merged.false) == 8 and merged.false["false"].all() and merged.seconds == {}

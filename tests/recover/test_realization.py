@@ -34,6 +34,7 @@ from astropy.wcs import WCS
 
 from comest_bayes.recover import realization as recovery
 from comest_bayes.config import load_config
+from comest_bayes.io import layout
 
 # These tests are about injection and recovery; the Bayesian fit has its own tests.
 NOFIT = ["fit.model=none", "fit.purity_model=none"]
@@ -167,7 +168,7 @@ def test_bright_point_source_position_and_mag_auto(clean_run):
     # MAGERR_AUTO must be a standard normal.  Tolerances (n ~ 100): |median| < 0.5 (its standard
     # error is 1.25/sqrt(n) ~ 0.13), 0.7 < std < 1.4 (the aperture itself is noisy), none beyond 5.
     merged = merge_realizations(clean_run.out / "sims", "point", range(3))
-    det = merged["detections"]
+    det = merged.detections
     row = {(int(r), int(i)): k for k, (r, i) in enumerate(zip(det["realization"], det["id"]))}
     assert len(row) == len(det)  # (realization, id) identifies a detection
     k = np.array([row[(int(r), int(i))] for r, i in zip(b["realization"], b["det_id"])])
@@ -645,8 +646,12 @@ def test_matching_an_empty_truth_table_makes_every_detection_false(tmp_path):
     dets["realization"] = np.zeros(len(dets), np.int32)
     recovery.write_realization(recovery.RealizationResult("point", 0, out, dets), tmp_path / "sims")
     merged = merge_realizations(tmp_path / "sims", "point", [0])
-    assert len(merged["injected"]) == len(merged["outcomes"]) == 0 and len(merged["false"]) == len(catalog)
-    assert list(merged["outcomes"].colnames) == list(OUTCOME_COLUMNS)
+    assert len(merged.injected) == len(merged.outcomes) == 0 and len(merged.false) == len(catalog)
+    assert list(merged.outcomes.colnames) == list(OUTCOME_COLUMNS)
+    # the catalogs written as files are named as in the layout; the detections and timings are no catalog file
+    assert [len(merged.table(name)) for name in layout.CATALOGS] == [0, 0, 0, len(catalog), 0]
+    with pytest.raises(KeyError, match="no merged catalog 'detections'"):
+        merged.table("detections")
 
 
 def test_realizations_without_injections_are_recorded_and_not_rerun(tmp_path):

@@ -54,16 +54,16 @@ def _fit(table, model="logistic_depth"):
 def _assert_finite(post, entry):
     assert np.all(np.isfinite(post.samples))
     for key in ("median", "lo68", "hi68", "lo95", "hi95"):
-        values = np.asarray(entry["curve"][key])
+        values = np.asarray(entry.curve[key])
         assert np.all(np.isfinite(values)) and np.all((values >= 0) & (values <= 1)), key
     for key in ("m50", "m80", "m90"):
-        item = entry[key]
+        item = entry.magnitudes[key]
         # either a finite interval, or None with the fraction of draws where it is defined
         if item["median"] is None:
             assert 0.0 <= item["defined_fraction"] < 0.5
         else:
             assert np.isfinite([item["median"], item["lo68"], item["hi68"]]).all()
-    json.dumps(entry)  # JSON-ready, so no NaN sneaks into summary.json
+    json.dumps(entry.to_dict())  # JSON-ready, so no NaN sneaks into summary.json
 
 
 @pytest.mark.parametrize("case", ["all", "none"])
@@ -73,7 +73,7 @@ def test_all_or_no_detections_with_a_depth_model(case):
     post, entry, messages = _fit(table)
     word = "positive" if case == "all" else "negative"
     assert any(f"every point outcome is {word}" in m for m in messages), messages
-    assert any(f"every point outcome is {word}" in m for m in entry["warnings"])
+    assert any(f"every point outcome is {word}" in m for m in entry.warnings)
     _assert_finite(post, entry)
 
 
@@ -86,7 +86,7 @@ def test_perfectly_separated_outcomes_at_the_fit_stage():
     # the step sits between the brightest undetected and the faintest detected injection
     m = np.asarray(table["mag"])
     lo, hi = m[m < 24.0].max(), m[m >= 24.0].min()
-    assert lo - 0.05 < entry["m50"]["median"] < hi + 0.05
+    assert lo - 0.05 < entry.magnitudes["m50"]["median"] < hi + 0.05
 
 
 def test_fewer_than_twenty_injections():
@@ -95,8 +95,8 @@ def test_fewer_than_twenty_injections():
     assert any("only 12 outcomes" in m for m in messages), messages
     _assert_finite(post, entry)
     # 12 injections say little: the 68% interval of m50 is wide (prior-dominated), not a false precision
-    if entry["m50"]["median"] is not None:
-        assert entry["m50"]["hi68"] - entry["m50"]["lo68"] > 0.1
+    if entry.magnitudes["m50"]["median"] is not None:
+        assert entry.magnitudes["m50"]["hi68"] - entry.magnitudes["m50"]["lo68"] > 0.1
 
 
 def test_all_injections_in_one_spatial_cell():
@@ -110,7 +110,7 @@ def test_all_injections_in_one_spatial_cell():
     table["detected"] = rng.random(len(table)) < 0.98 / (1.0 + np.exp(-(24.0 - m) / 0.15))
     post, entry, messages = _fit(table, "logistic_smooth")
     assert any("one small spatial cell" in m for m in messages), messages
-    assert any("one small spatial cell" in m for m in entry["warnings"])
+    assert any("one small spatial cell" in m for m in entry.warnings)
     _assert_finite(post, entry)
     med, sd, _ = post.m50_map(100)
     assert np.all(np.isfinite(med)) and np.all(np.isfinite(sd))
@@ -137,9 +137,9 @@ def test_nan_covariates_are_dropped_or_neutralised_with_counts():
     assert any("dropped 50 of 1500 outcome rows" in m and "40 with non-finite mag" in m for m in messages), messages
     assert any("150 of 1450 outcome rows have a non-finite or non-positive noise" in m for m in messages), messages
     _assert_finite(post, entry)
-    assert entry["n_outcomes"] == 1450
+    assert entry.n_outcomes == 1450
     # the remaining rows still carry the truth: m50_0 = 24 with w = 0.15 (sd ~0.02 at 1450 injections; 0.1 is 5 sd)
-    assert entry["parameters"]["m50_0"]["median"] == pytest.approx(24.0, abs=0.1)
+    assert entry.parameters["m50_0"]["median"] == pytest.approx(24.0, abs=0.1)
 
 
 def test_nan_everywhere_is_a_clear_error():
