@@ -223,7 +223,7 @@ def fit_kind(outcomes: Table, *, kind: str, quantity: str, requested: str, confi
              noise: np.ndarray, mask: np.ndarray, wcs_header: str | None, mag_range, mag_centers,
              outcome_column: str = "detected", footprint_points=None, warm: dict | None = None,
              footprints: dict | None = None, noise_grid: np.ndarray | None = None,
-             log=lambda s: None) -> tuple[CompletenessPosterior, FitEntry]:
+             products: bool = True, log=lambda s: None) -> tuple[CompletenessPosterior, FitEntry]:
     """Fit (or select and fit) the model of one kind and quantity.
 
     Parameters
@@ -254,6 +254,11 @@ def fit_kind(outcomes: Table, *, kind: str, quantity: str, requested: str, confi
         when absent.
     noise_grid : ndarray, optional
         :func:`~comest_bayes.bayes.posterior.coarse_noise_map` of the maps, likewise.
+    products : bool, default True
+        Compute the entry's summaries (m50/m80/m90 intervals, the curve on ``mag_centers``, the
+        shape check).  False for a fit whose posterior is only queried by its caller (the adaptive
+        design's refits): the entry then has empty ``magnitudes`` and ``curve`` and no
+        ``shape_check``; the posterior is the same.
 
     Returns
     -------
@@ -338,8 +343,8 @@ def fit_kind(outcomes: Table, *, kind: str, quantity: str, requested: str, confi
         warn.append(w)
     draws = result.draws()
     # the run's ratio bins, so the check speaks of the same bins as the binned table
-    check = shape_check(model, draws, edges)
-    msg = shape_warning(check, name=chosen_spec.name, kind=kind, quantity=quantity)
+    check = shape_check(model, draws, edges) if products else None
+    msg = shape_warning(check, name=chosen_spec.name, kind=kind, quantity=quantity) if products else None
     if msg:
         warnings.warn(msg, UserWarning, stacklevel=2)
         warn.append(msg)
@@ -358,7 +363,7 @@ def fit_kind(outcomes: Table, *, kind: str, quantity: str, requested: str, confi
     post.use_model(model)  # the compiled model (same parameters as the spec's own layout): no second compile
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
-        mags = post.summary_magnitudes()
+        mags = post.summary_magnitudes() if products else {}
     for w in caught:
         warn.append(str(w.message))
     if np.ptp(cov.m) < 2.0 * config.ratios.mag_bin:
@@ -373,7 +378,7 @@ def fit_kind(outcomes: Table, *, kind: str, quantity: str, requested: str, confi
         selection=selection,
         magnitudes=mags,
         parameters=_param_summary(model, draws),
-        curve=_json_curve(post.curve(np.asarray(mag_centers, float))),
+        curve=_json_curve(post.curve(np.asarray(mag_centers, float))) if products else {},
         diagnostics=diagnostics,
         tau=model.tau,
         shape_check=check,

@@ -30,7 +30,7 @@ from comest_bayes.errors import InputError
 from comest_bayes.seeding import Stream, rng_for, int_seed_for
 from comest_bayes.ratios import binned as R
 from comest_bayes.config import RunConfig
-from comest_bayes.bayes.fit import fit_kind, warm_state
+from comest_bayes.bayes.fit import fit_kind, shared_maps, warm_state
 from comest_bayes.bayes.spec import load_spec
 
 __all__ = ["AdaptiveSettings", "BatchRecord", "SequentialResult", "run_sequential", "PosteriorView",
@@ -315,7 +315,7 @@ def run_sequential(simulate, fit, lo: float, hi: float, settings: AdaptiveSettin
 
 def package_fitter(*, image_shape, noise, mask, lo: float, hi: float, seed: int, model: str = "auto",
                    kind: str = "point", ngrid: int = 161, nsamples: int = 1000, mag_bin: float = 0.1,
-                   reselect: float = 4.0, magnitudes=()):
+                   reselect: float = 4.0, magnitudes=(), maps: dict | None = None):
     """A ``fit`` callable for :func:`run_sequential` that runs the package's own completeness fit.
 
     Each call fits every outcome so far with :func:`comest_bayes.bayes.fit.fit_kind`
@@ -327,7 +327,12 @@ def package_fitter(*, image_shape, noise, mask, lo: float, hi: float, seed: int,
     the last comparison; in between, the chosen model is refitted from the
     previous posterior (:func:`comest_bayes.bayes.fit.warm_state`: Newton steps
     from its median, the spline's smoothness kept), which costs a fraction of
-    a selection.
+    a selection.  ``maps``: :func:`comest_bayes.bayes.fit.shared_maps` of
+    ``noise`` and ``mask`` for ``model`` (computed on the first call when not
+    given): the pass over the pixels is made once, not once per refit.  The
+    entry is made with ``products=False`` (no m50/m80/m90 summaries, curve or
+    shape check: the view carries what the design needs, and the run's fit
+    stage fits the final outcomes with every product).
     """
 
 
@@ -335,10 +340,12 @@ def package_fitter(*, image_shape, noise, mask, lo: float, hi: float, seed: int,
     centers = 0.5 * (edges[:-1] + edges[1:])
     grid = np.union1d(np.linspace(lo, hi, int(ngrid)), np.asarray(magnitudes, dtype=np.float64))
     selecting = load_spec(model).is_selection
-    state = {"warm": None, "selected_at": 0}
+    state = {"warm": None, "selected_at": 0, "maps": maps}
 
     def fit(table, k):
         n = len(table)
+        if state["maps"] is None:
+            state["maps"] = shared_maps(noise, mask, [model])
         warm = state["warm"]
         if selecting and (warm is None or n >= reselect * state["selected_at"]):
             warm = None
@@ -348,7 +355,9 @@ def package_fitter(*, image_shape, noise, mask, lo: float, hi: float, seed: int,
                                    requested=model if warm is None else warm["model"],
                                    config=RunConfig(seed=int_seed_for(seed, Stream.DESIGN_FIT, k)),
                                    image_shape=image_shape, noise=noise, mask=mask, wcs_header=None,
-                                   mag_range=(lo, hi), mag_centers=centers, warm=warm)
+                                   mag_range=(lo, hi), mag_centers=centers, warm=warm,
+                                   footprints=state["maps"]["footprints"], noise_grid=state["maps"]["noise_grid"],
+                                   products=False)
             curves = post.average_curve(grid, nsamples=nsamples)
             m50 = post.magnitudes_at((0.5,), nsamples=nsamples)[0.5]
         if warm is None:

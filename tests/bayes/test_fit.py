@@ -148,3 +148,16 @@ def test_a_fit_entry_is_frozen_and_its_json_form_gains_only_the_keys_that_were_s
     # a fit not run keeps the four keys of a skipped entry
     skipped = FitEntry(name=None, requested="purity", cpu_seconds=0.0, skipped="too few")
     assert skipped.to_dict() == {"name": None, "requested": "purity", "cpu_seconds": 0.0, "skipped": "too few"}
+
+
+def test_a_fit_without_products_has_the_same_posterior_and_an_entry_without_summaries():
+    # The adaptive design's refits query the posterior themselves (products=False): the posterior must be the one
+    # a full fit makes (same draws, same seed), and the entry must not carry summaries that were never computed.
+    table, noise_map = depth_split_outcomes(3000, seed=5)
+    full, e_full = fit_depth_split(table, noise_map, "logistic_depth")
+    bare, e_bare = fit_depth_split(table, noise_map, "logistic_depth", products=False)
+    np.testing.assert_array_equal(bare.samples, full.samples)
+    assert e_full.magnitudes["m50"] and e_full.curve and e_full.shape_check is not None
+    assert e_bare.magnitudes == {} and e_bare.curve == {} and e_bare.shape_check is None
+    assert e_bare.name == e_full.name and e_bare.n_cells == e_full.n_cells
+    assert "m50" not in e_bare.to_dict() and "m50" in e_full.to_dict()
