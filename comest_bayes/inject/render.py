@@ -270,7 +270,7 @@ def placement_capacity(kind: str, *, shape, pixel_scale: float, fwhm_pix: float 
     means the placement is full near ``placed``; all placed, that it holds at
     least ``n_try``.
     """
-    rng = np.random.default_rng(seed)
+    rng = rng_for(seed)
     n_try = int(n_try)
     params = draw_parameters(kind, n_try, config=config, mag_range=(20.0, 21.0), rng=rng, pixel_scale=pixel_scale)
     r_psf = psf_radius_pix(psf, config, fwhm_pix, pixel_scale) if r_psf_pix is None else float(r_psf_pix)

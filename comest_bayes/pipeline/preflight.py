@@ -20,6 +20,7 @@ from comest_bayes.inject.population import draw_parameters
 from comest_bayes.inject.render import (min_separation_pix, placement_capacity, psf_enclosed_radius_pix,
                                         psf_radius_pix, separation_radius_pix, sizing_rule)
 from comest_bayes.inject.psfmodel import make_psf
+from comest_bayes.seeding import rng_for
 
 __all__ = ["MIN_USABLE_INJECTIONS", "FEW_USABLE_INJECTIONS", "SMALLEST_SEEING_PIX", "PUBLISHED_DENSITY",
            "TARGET_PER_REALIZATION", "PER_BACKGROUND_MESH", "HOLD_FRACTION", "DensityChoice", "choose_density",
@@ -92,7 +93,7 @@ def sized_capacity(kind: str, *, shape, pixel_scale: float, fwhm_pix: float | No
     top = max(1, int(math.ceil(wanted)))
     if top > SIMULATED_MAX:
         # many small stamps on a large field: the edges hardly matter, random packing of the discs does
-        params = draw_parameters(kind, 4000, config=injection, mag_range=(20.0, 21.0), rng=np.random.default_rng(0),
+        params = draw_parameters(kind, 4000, config=injection, mag_range=(20.0, 21.0), rng=rng_for(0),
                                  pixel_scale=pixel_scale)
         r = separation_radius_pix(injection, fwhm_pix, pixel_scale, params["hlr_arcsec"])
         ny, nx = (int(v) for v in shape)

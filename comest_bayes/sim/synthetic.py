@@ -17,6 +17,7 @@ from astropy.table import Table
 
 from comest_bayes.ratios import binned as R
 from comest_bayes.errors import InputError
+from comest_bayes.seeding import rng_for
 
 __all__ = [
     "Scene",
@@ -245,7 +246,7 @@ def make_scene(shape=(512, 512), *, gradient: float = 0.6, chip_gap: bool = True
     if not np.isfinite(gradient_angle):
         raise InputError(f"gradient_angle = {gradient_angle!r} must be a finite angle in degrees.")
 
-    rng = np.random.default_rng(seed)
+    rng = rng_for(seed)
     xn = (np.arange(nx) / (nx - 1) - 0.5)[None, :]
     yn = (np.arange(ny) / (ny - 1) - 0.5)[:, None]
     c, s = math.cos(math.radians(gradient_angle)), math.sin(math.radians(gradient_angle))
@@ -598,7 +599,7 @@ def draw_outcomes(truth, scene: Scene, n: int | None = None, *, mag_range=None, 
         raise InputError(f"n = {n!r} must be a positive integer number of injections.")
     seed = _check_seed(seed)
     lo, hi = _check_range(truth.default_mag_range() if mag_range is None else mag_range)
-    rng = np.random.default_rng(seed)
+    rng = rng_for(seed)
     iy_all, ix_all, d_all, u_all, v_all = scene._unmasked
     pick = rng.integers(0, iy_all.size, size=int(n))
     iy, ix = iy_all[pick], ix_all[pick]
