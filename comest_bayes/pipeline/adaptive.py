@@ -117,6 +117,15 @@ class PosteriorView:
     #: The sampler's own convergence verdict: a precision read off draws that did not converge is not
     #: a precision reached (the loop goes on).
     converged: bool = True
+    #: m50 of the draws whose curves are in ``curves`` (S_curves,), when those are fewer than the draws
+    #: of ``m50`` (the precision is read off ``m50``, the design pairs ``curves`` with these); None:
+    #: ``curves`` and ``m50`` are the same draws.
+    curve_m50: np.ndarray | None = None
+
+    @property
+    def paired_m50(self) -> np.ndarray:
+        """m50 of the same draws as ``curves`` (what the design's covariances pair)."""
+        return self.m50 if self.curve_m50 is None else self.curve_m50
 
     @property
     def m50_halfwidth(self) -> float:
@@ -235,7 +244,7 @@ def after_batch(view: PosteriorView, lo: float, hi: float, *, precision: float, 
     if at_cap:
         return False, (f"stopped at the cap of {spent} with m50 half-width {half:.4f}"
                        + (f" > {precision}" if half > precision else f" <= {precision}{unconverged}")), None
-    return False, "", design_from_draws(view.grid, view.curves, lo, hi, target=target, m50=view.m50,
+    return False, "", design_from_draws(view.grid, view.curves, lo, hi, target=target, m50=view.paired_m50,
                                         uniform_share=uniform_share)
 
 
@@ -315,7 +324,7 @@ def run_sequential(simulate, fit, lo: float, hi: float, settings: AdaptiveSettin
 
 def package_fitter(*, image_shape, noise, mask, lo: float, hi: float, seed: int, model: str = "auto",
                    kind: str = "point", ngrid: int = 161, nsamples: int = 1000, mag_bin: float = 0.1,
-                   reselect: float = 4.0, magnitudes=(), maps: dict | None = None):
+                   reselect: float = 4.0, magnitudes=(), maps: dict | None = None, design_samples: int = 400):
     """A ``fit`` callable for :func:`run_sequential` that runs the package's own completeness fit.
 
     Each call fits every outcome so far with :func:`comest_bayes.bayes.fit.fit_kind`
@@ -332,7 +341,11 @@ def package_fitter(*, image_shape, noise, mask, lo: float, hi: float, seed: int,
     given): the pass over the pixels is made once, not once per refit.  The
     entry is made with ``products=False`` (no m50/m80/m90 summaries, curve or
     shape check: the view carries what the design needs, and the run's fit
-    stage fits the final outcomes with every product).
+    stage fits the final outcomes with every product).  With an m50 target
+    the curves that shape the design are evaluated for ``design_samples``
+    draws (with their own m50, :attr:`PosteriorView.curve_m50`) while the
+    precision is read off ``nsamples`` draws: the curve on ``ngrid``
+    magnitudes was the costliest part of a refit.
     """
 
 
@@ -358,14 +371,19 @@ def package_fitter(*, image_shape, noise, mask, lo: float, hi: float, seed: int,
                                    mag_range=(lo, hi), mag_centers=centers, warm=warm,
                                    footprints=state["maps"]["footprints"], noise_grid=state["maps"]["noise_grid"],
                                    products=False)
-            curves = post.average_curve(grid, nsamples=nsamples)
             m50 = post.magnitudes_at((0.5,), nsamples=nsamples)[0.5]
+            if len(magnitudes):  # the precision on f is read off the curves: all the draws
+                curves, curve_m50 = post.average_curve(grid, nsamples=nsamples), None
+            else:  # the curves only shape the design: fewer draws, with their own m50
+                curves = post.average_curve(grid, nsamples=design_samples)
+                curve_m50 = post.magnitudes_at((0.5,), nsamples=design_samples)[0.5]
         if warm is None:
             state["selected_at"] = n
         state["warm"] = warm_state(post)
         entry = replace(entry, warm_refit=warm is not None)
         converged = bool(entry.diagnostics.get("converged", True))
-        return (PosteriorView(grid=grid, curves=curves, m50=np.asarray(m50, float), converged=converged),
+        return (PosteriorView(grid=grid, curves=curves, m50=np.asarray(m50, float), converged=converged,
+                              curve_m50=None if curve_m50 is None else np.asarray(curve_m50, float)),
                 (post, entry))
 
     return fit

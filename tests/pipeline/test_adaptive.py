@@ -176,3 +176,27 @@ def test_a_precision_read_off_an_unconverged_posterior_does_not_stop_the_loop():
     assert after_batch(ok, 22.0, 26.0, at_cap=False, **dict(f_kw, precision=0.4))[0]
     reached, reason, nxt = after_batch(bad, 22.0, 26.0, at_cap=True, **dict(f_kw, precision=0.4))
     assert not reached and "did not converge" in reason
+
+
+def test_a_view_with_fewer_curve_draws_pairs_them_with_their_own_m50():
+    # package_fitter reads the precision off 1000 draws of m50 but evaluates the design's curves for 400 draws
+    # (the costliest part of a refit); the design must pair each curve with its own draw's m50, and the
+    # precision must come from the 1000.
+    from comest_bayes.inject.design import design_from_draws
+    from comest_bayes.pipeline.adaptive import PosteriorView, after_batch
+
+    grid = np.linspace(22.0, 26.0, 81)
+    rng = np.random.default_rng(8)
+    m50_all = 24.0 + 0.05 * rng.standard_normal(1000)
+    sub = m50_all[::5][:200]
+    curves = 1.0 / (1.0 + np.exp((grid[None, :] - sub[:, None]) / 0.2))
+    view = PosteriorView(grid=grid, curves=curves, m50=m50_all, curve_m50=sub)
+    assert view.paired_m50 is sub
+    half = 0.5 * np.diff(np.percentile(m50_all, [15.865, 84.135]))[0]
+    assert view.m50_halfwidth == pytest.approx(half)
+    reached, reason, nxt = after_batch(view, 22.0, 26.0, precision=0.01, at_cap=False, spent="x", target="m50",
+                                       uniform_share=0.15)
+    expected = design_from_draws(grid, curves, 22.0, 26.0, target="m50", m50=sub, uniform_share=0.15)
+    assert not reached and np.array_equal(nxt.prob, expected.prob)
+    # without curve_m50 the curves and m50 are the same draws, as before
+    assert PosteriorView(grid=grid, curves=curves, m50=sub).paired_m50 is sub
