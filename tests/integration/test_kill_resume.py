@@ -35,7 +35,10 @@ from comest_bayes.pipeline import fits as fitting
 from comest_bayes.io import rundir
 
 def hang():
-    marker.write_text(str(os.getpid()))
+    import comest_bayes
+    part = marker.with_name(marker.name + ".part")  # whole or absent: the test reads it as soon as it exists
+    part.write_text(f"{os.getpid()}\n{Path(comest_bayes.__file__).resolve()}")
+    os.replace(part, marker)
     while True:
         time.sleep(60)
 
@@ -94,8 +97,14 @@ def _kill_at(case: str, tile, out: Path, tmp_path: Path) -> None:
     driver = tmp_path / "driver.py"
     driver.write_text(DRIVER)
     marker = tmp_path / f"{case}.reached"
+    # the child must run the package this process imported, not another copy on its path (an installed
+    # wheel beside a checkout once made the two runs differ in every draw)
+    import comest_bayes
+
+    root = str(Path(comest_bayes.__file__).resolve().parent.parent)
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join([root, os.environ.get("PYTHONPATH", "")]).rstrip(os.pathsep)}
     child = subprocess.Popen([sys.executable, str(driver), case, str(marker), *_args(tile, out), "--quiet"],
-                             stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
+                             stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, env=env)
     try:
         deadline = time.monotonic() + 120.0
         while not marker.exists():
@@ -104,7 +113,9 @@ def _kill_at(case: str, tile, out: Path, tmp_path: Path) -> None:
                             f"{child.stderr.read().decode()[-2000:]}")
             assert time.monotonic() < deadline, f"the run did not reach the {case} point in 120 s"
             time.sleep(0.05)
-        assert int(marker.read_text()) == child.pid
+        pid, package = marker.read_text().split("\n")
+        assert int(pid) == child.pid
+        assert package == str(Path(comest_bayes.__file__).resolve()), "the child imported another copy of the package"
     finally:
         os.kill(child.pid, signal.SIGKILL)
         child.wait()
