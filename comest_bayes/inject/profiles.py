@@ -16,7 +16,7 @@ from comest_bayes.config import KINDS
 from comest_bayes.errors import InputError
 from comest_bayes.inject.cosmos import CosmosSample
 
-__all__ = ["sersic_b", 'TRUNC_HLR', 'TRUNC_TAIL', 'SERSIC_N_STEP', 'MAX_SERSIC_INDICES', 'SourceProfile', 'sersic_index_grid', 'sersic_truncation', 'sersic_enclosed_radius', 'bulge_disk_components', 'source_profile']
+__all__ = ["sersic_b", 'TRUNC_HLR', 'TRUNC_TAIL', 'SERSIC_N_STEP', 'MAX_SERSIC_INDICES', 'SourceProfile', 'sersic_index_grid', 'sersic_truncation', 'sersic_enclosed_radius', 'sersic_radius_per_hlr', 'bulge_disk_components', 'source_profile']
 
 #: Sersic profiles are truncated at this many half-light radii (see ``docs/sources.md``).
 TRUNC_HLR = 8.0
@@ -125,7 +125,7 @@ def growth_curve(n: float) -> tuple[np.ndarray, np.ndarray]:
     return x, frac
 
 
-def _radius_per_hlr(n: float, fraction: float) -> float:
+def sersic_radius_per_hlr(n: float, fraction: float) -> float:
     """Radius enclosing ``fraction`` of our (truncated) Sersic, in half-light radii."""
     x, frac = growth_curve(float(n))
     k = min(int(np.searchsorted(frac, fraction)), x.size - 1)
@@ -249,7 +249,7 @@ def source_profile(kind: str, *, flux: float, hlr_arcsec: float = np.nan, q: flo
         prof = galsim.Add([bulge, disk])
     elif kind in ("sersic", "observed"):
         prof = _sersic(sersic_n, hlr_arcsec, flux)
-        radius = hlr_arcsec * _radius_per_hlr(float(sersic_n), fraction)
+        radius = hlr_arcsec * sersic_radius_per_hlr(float(sersic_n), fraction)
     else:
         raise InputError(f"unknown source kind {kind!r}; use one of {KINDS}.")
     if q < 1.0:

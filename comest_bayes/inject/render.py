@@ -25,7 +25,7 @@ from comest_bayes.inject.cosmos import CosmosSample
 from comest_bayes.inject.kspace import buldisk_k, buldisk_radius_per_hlr, devaucouleurs_k_table, kspace_quadratic_forms
 from comest_bayes.inject.population import draw_parameters, fit_observed_population
 from comest_bayes.inject.psfmodel import make_psf, psf_half_light_radius_pix
-from comest_bayes.inject.profiles import _radius_per_hlr as _sersic_radius_per_hlr, source_profile
+from comest_bayes.inject.profiles import sersic_radius_per_hlr, source_profile
 from comest_bayes.seeding import rng_for
 
 __all__ = ["TRUTH_COLUMNS", "FLAG_MASKED", "FLAG_OFF_IMAGE", "FLAG_DRAW_ERROR", "MAX_FFT_SIZE",
@@ -226,7 +226,7 @@ def radius_per_hlr(kind: str, params: dict, fraction: float = STAMP_FLUX_FRACTIO
     if kind in ("sersic", "observed"):
         n = np.asarray(params["sersic_n"], dtype=float)
         uniq, inv = np.unique(n, return_inverse=True)
-        return np.array([_sersic_radius_per_hlr(float(v), fraction) for v in uniq])[inv.ravel()]
+        return np.array([sersic_radius_per_hlr(float(v), fraction) for v in uniq])[inv.ravel()]
     raise InputError(f"kind {kind!r} has no radius in half-light radii.")
 
 
