@@ -344,7 +344,7 @@ def fit_kind(outcomes: Table, *, kind: str, quantity: str, requested: str, confi
     draws = result.draws()
     # the run's ratio bins, so the check speaks of the same bins as the binned table
     check = shape_check(model, draws, edges) if products else None
-    msg = shape_warning(check, name=chosen_spec.name, kind=kind, quantity=quantity) if products else None
+    msg = shape_warning(check, name=chosen_spec.name, kind=kind, quantity=quantity) if check is not None else None
     if msg:
         warnings.warn(msg, UserWarning, stacklevel=2)
         warn.append(msg)

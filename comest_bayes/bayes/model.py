@@ -257,7 +257,7 @@ _jit_prob_m50_batch = stored_jit(_prob_m50_batch, 0, sources=_SOURCES)
 BATCH_ELEMENTS = 1 << 20
 
 #: Cell counts are padded up to the next of these sizes (cells with n = 0), so that data sets of
-#: similar size share one compiled likelihood: 2^(k/2) steps waste at most 41% of the work.
+#: similar size share one compiled likelihood: powers of two waste at most half of the work.
 def padded_size(g: int) -> int:
     """Smallest ``256 * 2^j`` (j = 0, 1, ...) that holds ``g`` cells.
 
@@ -822,7 +822,7 @@ class CompletenessModel:
         # rung supplies every one of them that this model has, its defaults suffice (same start, no search)
         searched = [n for n in ("m50_0", "log_w", "logit_A", "logit_floor") if n in self.names]
         if all(n in other and np.isfinite(other[n]) for n in searched):
-            start = self._grid_initial(search=False)
+            start = self._start_from((float(np.mean(self.data.cov.m)), 0.2, 0.97, 0.01))  # all four replaced below
         else:
             start = self.initial()
         for i, name in enumerate(self.names):
@@ -845,12 +845,10 @@ class CompletenessModel:
             self._initial = self._grid_initial()
         return self._initial.copy()
 
-    def _grid_initial(self, search: bool = True) -> np.ndarray:
+    def _grid_initial(self) -> np.ndarray:
         data = self.data
         m = data.cov.m
         lo, hi = float(m.min()), float(m.max())
-        if not search:  # the defaults of every parameter the grid does not place (see warm_start)
-            return self._start_from((0.5 * (lo + hi), 0.2, 0.97, 0.01))
         nbins = int(min(400, max(1, math.ceil((hi - lo) / 0.02))))
         edges = np.linspace(lo, hi + 1e-9, nbins + 1)
         which = np.clip(np.searchsorted(edges, m, side="right") - 1, 0, nbins - 1)
