@@ -4,8 +4,10 @@ The spline rung (``models/spline_depth.toml``) shrinks its knot log-rates toward
 with a random-walk prior of scale tau, chosen per fit by the Laplace evidence over
 ``selection.TAU_GRID``.  This script fits ``spline_depth`` at every tau of a grid to the same
 outcome tables and scores each choice of tau (every fixed tau, the evidence's choice, the
-evidence-weighted mixture over the grid, and the choice of the Laplace leave-one-out score)
-against a known truth, with Laplace draws (importance-resampled, as the selection uses them):
+evidence-weighted mixture over the grid, the choice of the Laplace leave-one-out score, and two
+rules focused on the targeted quantities) against a known truth, on each fit's Laplace draws
+(``--draws laplace``, the default) or on those draws importance-resampled (``--draws resampled``, as
+the tables of 2026-11-25 were made; their k-hat and effective sample size are printed per tau):
 
 * ``--scene honesty``: a truth of ``comest_bayes.sim.synthetic`` on the honesty benchmark's scene,
   with the honesty benchmark's own seeds (so replicates pair with ``bench_honesty.py``); scores the
@@ -13,12 +15,15 @@ against a known truth, with Laplace draws (importance-resampled, as the selectio
   coverage, RMSE);
 * ``--scene analytic``: subsets of the analytic white-noise injection pool written by
   ``bench_speed_accuracy.py --work DIR`` (``DIR/analytic_run``), scoring m50 against the held-out
-  pool's m50 (25.3958 for the pool of the 2026-11 runs; pass ``--ref``).
+  pool's m50 (25.3958 for the pool of the 2026-11 runs; pass ``--ref``);
+* ``--scene narrow``: a stand-in for that pool with an exact answer and no pool to build: outcomes
+  drawn from a logistic of the pool's width (``--width``, 0.045 mag) over the pool's range.
 
 Example::
 
     python benchmarks/bench_spline_tau.py --scene honesty --truth two_populations --n 3000 --reps 24
     python benchmarks/bench_spline_tau.py --scene analytic --work /tmp/sa4/work --n 10000 --reps 10
+    python benchmarks/bench_spline_tau.py --scene narrow --n 10000 --reps 16 [--draws resampled]
 """
 
 from __future__ import annotations
@@ -39,10 +44,18 @@ TAUS = (0.03, 0.1, 0.3, 1.0, 3.0, 10.0)
 NDRAWS = 400
 
 
-def tau_sweep(model, qfn, *, seed: int, taus=TAUS):
-    """Per tau: the quantities' Laplace draws, the log evidence and the Laplace LOO elpd."""
+def tau_sweep(model, qfn, *, seed: int, taus=TAUS, draws: str = "laplace"):
+    """Per tau: the quantities' draws, the log evidence, the Laplace LOO elpd and the draws' PSIS diagnostics.
+
+    ``draws = "laplace"``: the Laplace Gaussian's own draws (unweighted); ``"resampled"``: those draws
+    importance-resampled towards the posterior, as the 2026-11-25 tables were made.  With only
+    :data:`NDRAWS` draws the resampling degenerates on rough splines (k-hat 1.2-1.6, an effective sample
+    size of 2-12 at tau 10 on a narrow logistic): a handful of distinct draws, whose spread understates
+    the posterior's.  ``khat`` and ``ess`` of every row say how far the weights can be trusted.
+    """
     from comest_bayes.bayes import selection as SEL
     from comest_bayes.bayes.inference import fit_map, laplace
+    from comest_bayes.bayes.psis import psis_log_weights
 
     rows, prev = [], None
     for tau in taus:
@@ -51,11 +64,25 @@ def tau_sweep(model, qfn, *, seed: int, taus=TAUS):
                      method="newton" if prev is not None else "L-BFGS-B")
         prev = mp.theta
         lap = laplace(model, mp.theta)
-        draws, lw, rng = SEL._laplace_draws(model, lap, seed=seed, ndraws=NDRAWS)
-        rows.append({"tau": tau, "q": qfn(model, SEL._resample(draws, lw, NDRAWS, rng)),
+        theta, lw, rng = SEL._laplace_draws(model, lap, seed=seed, ndraws=NDRAWS)
+        lw_s, khat = psis_log_weights(np.where(np.isfinite(lw), lw, -np.inf))
+        w = np.exp(lw_s - np.max(lw_s))
+        w /= w.sum()
+        use = SEL._resample(theta, lw, NDRAWS, rng) if draws == "resampled" else theta
+        rows.append({"tau": tau, "q": qfn(model, use), "khat": float(khat), "ess": float(1.0 / np.sum(w * w)),
                      "evidence": SEL.laplace_evidence(model, mp.theta, mp.log_prob),
                      "loo": SEL.loo_laplace(model, mp.theta, lap.cov).elpd})
     return rows
+
+
+def psis_summary(all_rows) -> str:
+    """Median k-hat and ESS of the :data:`NDRAWS` Laplace draws per tau, over the replicates."""
+    parts = []
+    for j, tau in enumerate(r["tau"] for r in all_rows[0]):
+        k = np.median([rows[j]["khat"] for rows in all_rows])
+        e = np.median([rows[j]["ess"] for rows in all_rows])
+        parts.append(f"tau {tau:g}: k-hat {k:.2f}, ESS {e:.0f}")
+    return f"  importance weights of the {NDRAWS} Laplace draws (median over replicates): " + "; ".join(parts)
 
 
 def focused_choice(rows, how: str) -> int:
@@ -131,7 +158,7 @@ def honesty(a, log):
     q = setup["quantities"]
     spec = load_spec("spline_depth")
     hist = FootprintHistogram.from_maps(scene.noise, scene.mask, ddepth=0.01, nuv=1)
-    scores = defaultdict(list)
+    scores, all_rows = defaultdict(list), []
     for rep in range(a.reps):
         table = S.draw_outcomes(truth, scene, a.n, mag_range=(lo, hi),
                                 seed=int_seed_for(a.seed, "honesty", a.truth, a.n, rep, "draw"))
@@ -139,12 +166,14 @@ def honesty(a, log):
         model = CompletenessModel(spec, compress_for(spec, cov, out, meta=meta))
         qfn = targeted_quantities(Footprint.from_histogram(hist, meta.get("sigma_ref")),
                                   [q["mag_bright"], q["mag_faint"]], lo, hi)
-        rows = tau_sweep(model, qfn, seed=int_seed_for(a.seed, "honesty", a.truth, a.n, rep, "fit"))
+        rows = tau_sweep(model, qfn, seed=int_seed_for(a.seed, "honesty", a.truth, a.n, rep, "fit"), draws=a.draws)
+        all_rows.append(rows)
         for name, qd in rules(rows, np.random.default_rng(rep)).items():
             scores[name].append(qd)
         log(f"  replicate {rep}: evidence picks tau {rows[int(np.argmax([r['evidence'] for r in rows]))]['tau']:g}, "
             f"LOO picks {rows[int(np.argmax([r['loo'] for r in rows]))]['tau']:g}")
-    log(f"{a.truth}, N = {a.n}, {a.reps} replicates: bias / posterior sd, 68% coverage, RMSE x 1000")
+    log(f"{a.truth}, N = {a.n}, {a.reps} replicates, {a.draws} draws: bias / posterior sd, 68% coverage, RMSE x 1000")
+    log(psis_summary(all_rows))
     for name, reps in scores.items():
         parts = []
         for k in reps[0]:
@@ -158,60 +187,87 @@ def honesty(a, log):
         log(f"  {name:<17s} " + " | ".join(parts))
 
 
-def analytic(a, log):
-    from astropy.table import Table
-
+def _m50_rules(a, log, tables, ref: float, lo: float, hi: float, label: str):
+    """Fit every tau to each (magnitude, detected) table of a white-noise scene; m50 RMSE and sd per rule."""
+    from comest_bayes.bayes.fit import _probe_magnitudes, targeted_quantities
     from comest_bayes.bayes.model import CompletenessModel
     from comest_bayes.bayes.outcomes import compress_for, covariates_from_outcomes
+    from comest_bayes.bayes.posterior import Footprint
     from comest_bayes.bayes.spec import load_spec
+
+    spec = load_spec("spline_depth")
+    # white noise: the depth covariate is ~0 everywhere, one footprint cell at depth 0
+    one_cell = Footprint(depth=np.zeros(1), u=np.zeros(1), v=np.zeros(1), weight=np.ones(1), npix=1)
+    scores, all_rows = defaultdict(list), []
+    for rep, (mag, det) in enumerate(tables):
+        cov, out, meta = covariates_from_outcomes({"mag": mag, "detected": det}, image_shape=None)
+        model = CompletenessModel(spec, compress_for(spec, cov, out, meta=meta))
+        qfn = targeted_quantities(one_cell, _probe_magnitudes(cov.m, out), lo, hi)
+        rows = tau_sweep(model, qfn, seed=1 + rep, draws=a.draws)
+        all_rows.append(rows)
+        for name, qd in rules(rows, np.random.default_rng(rep)).items():
+            scores[name].append(qd["m50"])
+        log(f"  replicate {rep}: evidence picks tau {rows[int(np.argmax([r['evidence'] for r in rows]))]['tau']:g}, "
+            f"LOO picks {rows[int(np.argmax([r['loo'] for r in rows]))]['tau']:g}, "
+            f"bias test picks {rows[focused_choice(rows, 'bias')]['tau']:g}")
+    log(f"{label}, N = {a.n}, {len(tables)} replicates, {a.draws} draws: m50 RMSE and median posterior sd (mmag) "
+        f"against {ref:.4f}")
+    log(psis_summary(all_rows))
+    for name, v in scores.items():
+        mean = np.array([np.mean(x) for x in v])
+        log(f"  {name:<17s} rmse {1e3 * np.sqrt(np.mean((mean - ref) ** 2)):5.2f}  "
+            f"sd {1e3 * np.median([np.std(x) for x in v]):5.2f}")
+
+
+def analytic(a, log):
+    from astropy.table import Table
 
     o = Table.read(Path(a.work) / "analytic_run" / "catalogs" / "point_outcomes.fits")
     mag = np.asarray(o["mag"], float)
     det = np.asarray(o["detected"], bool)
     idx = np.random.default_rng(7).permutation(np.flatnonzero(np.asarray(o["realization"]) % 3 != 0))
-    spec = load_spec("spline_depth")
+    tables = [(mag[idx[r * a.n:(r + 1) * a.n]], det[idx[r * a.n:(r + 1) * a.n]]) for r in range(a.reps)]
+    _m50_rules(a, log, tables, a.ref, float(mag.min()), float(mag.max()), "analytic pool")
 
-    from comest_bayes.bayes.fit import _probe_magnitudes, targeted_quantities
-    from comest_bayes.bayes.posterior import Footprint
 
-    one_cell = Footprint(depth=np.zeros(1), u=np.zeros(1), v=np.zeros(1), weight=np.ones(1), npix=1)
+#: The ``narrow`` scene: a logistic of the white-noise pool's width (0.045 mag, the fit of 10^4 of its
+#: outcomes), floor 0.01 and plateau 0.99, m50 25.4, magnitudes uniform over the pool's 24.0-26.8.
+NARROW = {"m50": 25.4, "lo": 24.0, "hi": 26.8, "floor": 0.01, "plateau": 0.99}
 
-    scores = defaultdict(list)
+
+def narrow(a, log):
+    """A stand-in for the analytic pool with an exact m50: outcomes drawn from a narrow logistic."""
+    from comest_bayes.seeding import rng_for
+
+    c = NARROW
+    tables = []
     for rep in range(a.reps):
-        sub = idx[rep * a.n:(rep + 1) * a.n]
-        cov, out, meta = covariates_from_outcomes({"mag": mag[sub], "detected": det[sub]}, image_shape=None)
-        model = CompletenessModel(spec, compress_for(spec, cov, out, meta=meta))
-        # white noise: the depth covariate is ~0 everywhere, one footprint cell at depth 0
-        qfn = targeted_quantities(one_cell, _probe_magnitudes(cov.m, out), float(mag.min()), float(mag.max()))
-        rows = tau_sweep(model, qfn, seed=1 + rep)
-        for name, qd in rules(rows, np.random.default_rng(rep)).items():
-            scores[name].append(qd["m50"])
-        log(f"  replicate {rep}: evidence picks tau {rows[int(np.argmax([r['evidence'] for r in rows]))]['tau']:g}, "
-            f"LOO picks {rows[int(np.argmax([r['loo'] for r in rows]))]['tau']:g}")
-    log(f"analytic pool, N = {a.n}, {a.reps} replicates: m50 RMSE and median posterior sd (mmag) "
-        f"against {a.ref}")
-    for name, v in scores.items():
-        mean = np.array([np.mean(x) for x in v])
-        log(f"  {name:<17s} rmse {1e3 * np.sqrt(np.mean((mean - a.ref) ** 2)):5.2f}  "
-            f"sd {1e3 * np.median([np.std(x) for x in v]):5.2f}")
+        rng = rng_for(a.seed, "spline_tau", "narrow", a.n, rep)
+        mag = rng.uniform(c["lo"], c["hi"], a.n)
+        f = c["floor"] + (c["plateau"] - c["floor"]) / (1.0 + np.exp((mag - c["m50"]) / a.width))
+        tables.append((mag, rng.random(a.n) < f))
+    _m50_rules(a, log, tables, c["m50"], c["lo"], c["hi"], f"narrow logistic (w = {a.width:g} mag)")
 
 
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    p.add_argument("--scene", choices=("honesty", "analytic"), required=True)
+    p.add_argument("--scene", choices=("honesty", "analytic", "narrow"), required=True)
     p.add_argument("--truth", default="two_populations", help="honesty truth name")
     p.add_argument("--n", type=int, default=3000)
     p.add_argument("--reps", type=int, default=24)
     p.add_argument("--seed", type=int, default=12, help="the honesty benchmark's root seed")
     p.add_argument("--work", default="/tmp/sa4/work", help="bench_speed_accuracy.py --work directory")
     p.add_argument("--ref", type=float, default=25.3958, help="reference m50 of the analytic pool")
+    p.add_argument("--width", type=float, default=0.045, help="logistic width of the narrow scene, mag")
+    p.add_argument("--draws", choices=("laplace", "resampled"), default="laplace",
+                   help="score each tau on its Laplace draws (default) or on those draws importance-resampled")
     a = p.parse_args(argv)
     from comest_bayes.pipeline import runtime
 
     runtime.configure(threads=1)
     warnings.simplefilter("ignore")
     log = lambda s: print(s, flush=True)  # noqa: E731
-    (honesty if a.scene == "honesty" else analytic)(a, log)
+    {"honesty": honesty, "analytic": analytic, "narrow": narrow}[a.scene](a, log)
     return 0
 
 
