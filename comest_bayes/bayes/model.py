@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import math
 import warnings
+from contextlib import contextmanager
 from dataclasses import dataclass
 from typing import Mapping, NamedTuple
 import numpy as np
@@ -261,16 +262,39 @@ BATCH_ELEMENTS = 1 << 20
 def padded_size(g: int) -> int:
     """Smallest of 256, 384, 512, 768, 1024, 1536, ... (``256 * 2^j`` and ``384 * 2^j``) that holds ``g`` cells.
 
-    Steps of 1.5 and 4/3 rather than finer ones: on the run sizes a user meets most (a few hundred
-    to a thousand cells per kind) the kinds of a run then still share one size (the demo's 673 and
-    731 cells both take 768), and a process loads each compiled program once (25-45 ms each, some
-    fifteen per model layout).  Against powers of two alone, every likelihood evaluation of the
-    demo's fits runs over 768 instead of 1024 cells (empty ones, n = k = 0, add nothing).
+    Steps of 1.5 and 4/3 rather than finer ones: a process loads each compiled program once (25-45 ms
+    each, some fifteen per model layout), so data sets of similar size should share one size.  Against
+    powers of two alone, every likelihood evaluation of the demo's fits runs over 768 instead of 1024
+    cells (empty ones, n = k = 0, add nothing).  Inside :func:`padding_floor` a larger size is used
+    when it is no larger than the power of two that holds ``g``: the fits of one worker (the kinds of a
+    run, whose cell counts may straddle a step) then share one size, as they did with powers of two.
     """
     size = 256
     while size < g:
         size = size * 3 // 2 if size & (size - 1) == 0 else size * 4 // 3
+    floor = _PAD_FLOOR[0]
+    if size < floor:
+        pow2 = 256
+        while pow2 < g:
+            pow2 *= 2
+        if floor <= pow2:
+            return floor
     return size
+
+
+_PAD_FLOOR = [0]
+
+
+@contextmanager
+def padding_floor(size: int):
+    """Within the block, :func:`padded_size` pads to ``size`` any cell count it may hold without more
+    padding than the power of two above it would add (see there); ``size`` 0 changes nothing."""
+    before = _PAD_FLOOR[0]
+    _PAD_FLOOR[0] = int(size)
+    try:
+        yield
+    finally:
+        _PAD_FLOOR[0] = before
 
 
 def _prior_args(spec_prior: dict) -> tuple[float, float, float]:

@@ -365,3 +365,26 @@ def test_rungs_on_one_data_set_share_the_grid_search_and_start_where_alone():
     # the shared part is the same for all: m50_0 and log_w
     for name in starts:
         np.testing.assert_array_equal(starts[name][:2], starts["logistic"][:2])
+
+
+def test_padding_floor_shares_a_size_within_a_power_of_two_and_changes_no_density():
+    """A worker's fits of one model share the largest padded size of the group when it is no larger than
+    the power of two above their own count; the padding (empty cells) leaves every density unchanged."""
+    from comest_bayes.bayes.model import padded_size, padding_floor
+
+    with padding_floor(1024):
+        assert [padded_size(g) for g in (710, 831, 513, 300, 1100)] == [1024, 1024, 1024, 384, 1536]
+    with padding_floor(768):
+        assert padded_size(673) == padded_size(731) == 768
+    assert padded_size(710) == 768  # the floor ends with the block
+    cov, y = synthetic(3000, 33)
+    data = compress_for("spline_depth", cov, y)
+    alone = CompletenessModel("spline_depth", data)
+    pow2 = 256 * 2 ** math.ceil(math.log2(data.ncells / 256))
+    assert pow2 > padded_size(data.ncells)  # this data set's count lies between the steps (1024, 1536]
+    with padding_floor(pow2):
+        wide = CompletenessModel("spline_depth", data)
+    assert wide._data[0].shape[0] == pow2 > alone._data[0].shape[0]
+    theta = alone.initial()
+    assert wide.log_prob(theta) == pytest.approx(alone.log_prob(theta), rel=1e-13, abs=1e-9)
+    np.testing.assert_allclose(wide.value_and_grad(theta)[1], alone.value_and_grad(theta)[1], rtol=1e-11, atol=1e-9)
