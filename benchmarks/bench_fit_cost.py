@@ -15,6 +15,9 @@ Three measurements, each in fresh processes launched as a user would launch them
 * ``million``: 10^6 outcomes of a skewed truth (``synthetic`` ``skew_faint``) fitted by
   ``fitting.fit_kind`` with ``auto`` (selection of every rung, then the chosen model's
   posterior), wall time in a fresh process with the warm cache (target <= 10 s on 2 cores).
+* ``adaptive``: ``comest-bayes demo --precision 0.01`` (twice; the second with the warm cache): the
+  CPU of the design fits (``run.json`` ``design_fit_cpu``) against the injection's, issue #16's
+  "a refit costs a small fraction of a batch".
 * ``threads``: the largest number of threads of a process running that fit after
   ``runtime.configure(threads=1)`` (what ``--ncpu 1`` gives), read from ``/proc/self/task``.
 
@@ -80,17 +83,22 @@ def run_million(n: int, cache: str) -> dict:
     return json.loads(out.stdout.strip().splitlines()[-1])
 
 
-def run_demo(folder: Path, cache: str, size: int, ncpu: int | None = None) -> dict:
+def run_demo(folder: Path, cache: str, size: int, ncpu: int | None = None, precision: float | None = None) -> dict:
     env = dict(os.environ, COMEST_BAYES_CACHE=cache)
     t0 = time.perf_counter()
     extra = [] if ncpu is None else ["--ncpu", str(ncpu)]
+    if precision:
+        extra += ["--precision", str(precision)]
     subprocess.run([sys.executable, "-m", "comest_bayes.cli", "demo", "--out", str(folder), "--size", str(size),
                     "--no-report", "--quiet", *extra], env=env, check=True, cwd=str(ROOT))
     wall = time.perf_counter() - t0
     state = json.loads((folder / "run.json").read_text())
     t = state.get("timings", {})
-    return {"wall": wall, "timings": t, "ratio_cpu": t.get("fit_cpu", float("nan")) / t.get("inject_cpu", float("nan")),
-            "ratio_wall": t.get("fit", float("nan")) / t.get("inject", float("nan"))}
+    out = {"wall": wall, "timings": t, "ratio_cpu": t.get("fit_cpu", float("nan")) / t.get("inject_cpu", float("nan")),
+           "ratio_wall": t.get("fit", float("nan")) / t.get("inject", float("nan"))}
+    if "design_fit_cpu" in t:  # an adaptive run: the design fits against the injection they steer
+        out["design_ratio_cpu"] = t["design_fit_cpu"] / t.get("inject_cpu", float("nan"))
+    return out
 
 
 def main(argv=None) -> int:
@@ -100,6 +108,9 @@ def main(argv=None) -> int:
     p.add_argument("--small-size", type=int, default=2048,
                    help="also a demo of this size on one core (--ncpu 1), warm cache; 0 skips it")
     p.add_argument("--sizes", nargs="+", type=int, default=[30_000, 1_000_000])
+    p.add_argument("--precision", type=float, default=0.01,
+                   help="also the adaptive demo (--precision) twice, warm cache the second time: its design fits' CPU "
+                        "against its injection's (run.json design_fit_cpu / inject_cpu); 0 skips it")
     p.add_argument("--out", default=str(HERE / "results" / "fit_cost.json"))
     a = p.parse_args(argv)
     result = {"machine": {"cpus": os.cpu_count(), "python": sys.version.split()[0]}}
@@ -119,6 +130,10 @@ def main(argv=None) -> int:
                       json.dumps(result[key + "_first_run"]), flush=True)
                 result[key] = run_demo(Path(tmp) / "demo4", cache, a.small_size, ncpu=1)
                 print(f"demo {a.small_size}^2 on one core, warm cache:", json.dumps(result[key]), flush=True)
+        if not a.skip_demo and a.precision:
+            for key, folder in (("adaptive_first_run", "demo5"), ("adaptive", "demo6")):
+                result[key] = run_demo(Path(tmp) / folder, cache, a.demo_size, precision=a.precision)
+                print(f"adaptive demo (--precision {a.precision:g}), {key}:", json.dumps(result[key]), flush=True)
         for n in a.sizes:
             run_million(n, cache)  # fills the cache for this padded size
             result[f"fit_{n}"] = run_million(n, cache)

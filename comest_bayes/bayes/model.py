@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import math
 import warnings
+from contextlib import contextmanager
 from dataclasses import dataclass
 from typing import Mapping, NamedTuple
 import numpy as np
@@ -257,19 +258,43 @@ _jit_prob_m50_batch = stored_jit(_prob_m50_batch, 0, sources=_SOURCES)
 BATCH_ELEMENTS = 1 << 20
 
 #: Cell counts are padded up to the next of these sizes (cells with n = 0), so that data sets of
-#: similar size share one compiled likelihood: powers of two waste at most half of the work.
+#: similar size share one compiled likelihood: the steps waste at most a third of the work.
 def padded_size(g: int) -> int:
-    """Smallest ``256 * 2^j`` (j = 0, 1, ...) that holds ``g`` cells.
+    """Smallest of 256, 384, 512, 768, 1024, 1536, ... (``256 * 2^j`` and ``384 * 2^j``) that holds ``g`` cells.
 
-    Powers of two rather than finer steps: on the run sizes a user meets most (a few hundred to a
-    thousand cells per kind) the kinds of a run then share one size, and a process loads each
-    compiled program once (about 25 ms each, some fifteen per model layout), which costs more than
-    the up to twice as many padded cells (empty, n = k = 0) in each likelihood evaluation.
+    Steps of 1.5 and 4/3 rather than finer ones: a process loads each compiled program once (25-45 ms
+    each, some fifteen per model layout), so data sets of similar size should share one size.  Against
+    powers of two alone, every likelihood evaluation of the demo's fits runs over 768 instead of 1024
+    cells (empty ones, n = k = 0, add nothing).  Inside :func:`padding_floor` a larger size is used
+    when it is no larger than the power of two that holds ``g``: the fits of one worker (the kinds of a
+    run, whose cell counts may straddle a step) then share one size, as they did with powers of two.
     """
     size = 256
     while size < g:
-        size *= 2
+        size = size * 3 // 2 if size & (size - 1) == 0 else size * 4 // 3
+    floor = _PAD_FLOOR[0]
+    if size < floor:
+        pow2 = 256
+        while pow2 < g:
+            pow2 *= 2
+        if floor <= pow2:
+            return floor
     return size
+
+
+_PAD_FLOOR = [0]
+
+
+@contextmanager
+def padding_floor(size: int):
+    """Within the block, :func:`padded_size` pads to ``size`` any cell count it may hold without more
+    padding than the power of two above it would add (see there); ``size`` 0 changes nothing."""
+    before = _PAD_FLOOR[0]
+    _PAD_FLOOR[0] = int(size)
+    try:
+        yield
+    finally:
+        _PAD_FLOOR[0] = before
 
 
 def _prior_args(spec_prior: dict) -> tuple[float, float, float]:
@@ -504,9 +529,14 @@ class CompletenessModel:
 
     @property
     def _prior(self):
-        a, b, lnorm, active = self._prior_arrays
-        return (jnp.asarray(a), jnp.asarray(b), jnp.asarray(lnorm), jnp.asarray(active),
-                jnp.asarray(math.log(self._tau)))
+        # the device copies of the prior's arrays, made once per tau: each jnp.asarray of a host array is an
+        # eager conversion (about 0.1 ms), and every density, gradient and Hessian call takes these five
+        cached = getattr(self, "_prior_device", None)
+        if cached is None or cached[0] != self._tau:
+            a, b, lnorm, active = self._prior_arrays
+            cached = self._prior_device = (self._tau, (jnp.asarray(a), jnp.asarray(b), jnp.asarray(lnorm),
+                                                       jnp.asarray(active), jnp.asarray(math.log(self._tau))))
+        return cached[1]
 
     @property
     def structure(self) -> _Structure:
@@ -539,12 +569,14 @@ class CompletenessModel:
         """The smooth basis columns of the layout at covariates (N, J)."""
         return self.basis(cov)
 
-    def _theta(self, theta) -> jnp.ndarray:
+    def _theta(self, theta) -> np.ndarray:
+        # a host array: the compiled programs take it as it is (jnp.asarray would add an eager conversion,
+        # about 0.1 ms, to every call of the optimizer's objective)
         t = np.asarray(theta, dtype=np.float64)
         if t.shape != (self.ndim,):
             raise InputError(f"theta must have shape ({self.ndim},) for model {self.spec.name!r} "
                              f"(parameters {self.names}), got {t.shape}.")
-        return jnp.asarray(self.full(t))
+        return self.full(t)
 
     def _thetas(self, thetas) -> np.ndarray:
         t = np.asarray(thetas, dtype=np.float64)
@@ -593,14 +625,29 @@ class CompletenessModel:
             nb = block.shape[0]
             if nb < rows:
                 block = np.concatenate([block, np.repeat(block[-1:], rows - nb, axis=0)])
-            out[start:start + nb] = np.asarray(_jit_log_prob_batch(self._st, jnp.asarray(block), self._data,
+            out[start:start + nb] = np.asarray(_jit_log_prob_batch(self._st, block, self._data,
                                                                    self._prior, batch))[:nb]
         return out
 
     def hessian(self, theta) -> np.ndarray:
-        """Hessian of :meth:`log_prob`, shape (ndim, ndim)."""
-        h = np.asarray(_jit_hessian(self._st, self._theta(theta), self._data, self._prior))
-        return h[np.ix_(self._free_idx, self._free_idx)]
+        """Hessian of :meth:`log_prob`, shape (ndim, ndim).
+
+        The last few are remembered (keyed on the exact bits of ``theta`` and on ``tau``): a fit asks
+        for the Hessian at one MAP up to three times (the Newton optimizer's last step, the evidence of
+        the smoothness scale, the Laplace approximation), and each costs as much as about twenty
+        gradients.
+        """
+        full = self._theta(theta)
+        key = (full.tobytes(), self._tau)
+        memo = self.__dict__.setdefault("_hessians", {})
+        h = memo.get(key)
+        if h is None:
+            h = np.asarray(_jit_hessian(self._st, full, self._data, self._prior))[np.ix_(self._free_idx,
+                                                                                         self._free_idx)]
+            if len(memo) >= HESSIAN_MEMO:
+                memo.pop(next(iter(memo)))
+            memo[key] = h
+        return h.copy()
 
     def cell_loglik(self, thetas, *, max_elements: int = 20_000_000) -> np.ndarray:
         """Per-cell ``log f`` and ``log(1 - f)`` for each parameter vector.
@@ -630,7 +677,7 @@ class CompletenessModel:
             nb = block.shape[0]
             if nb < chunk:  # pad to one compiled shape
                 block = np.concatenate([block, np.repeat(block[-1:], chunk - nb, axis=0)])
-            res = _jit_cell_logs_batch(self._st, jnp.asarray(block), m, depth, size, basis)
+            res = _jit_cell_logs_batch(self._st, block, m, depth, size, basis)
             out[start:start + nb] = np.asarray(res)[:nb, :g]
         return out
 
@@ -693,7 +740,7 @@ class CompletenessModel:
             nb = len(block)
             if nb < chunk:  # pad to one compiled shape
                 block = np.concatenate([block, np.repeat(block[-1:], chunk - nb, axis=0)])
-            out[start:start + nb] = np.asarray(_jit_average_batch(self._st, jnp.asarray(block), mags, *args))[:nb, :nm]
+            out[start:start + nb] = np.asarray(_jit_average_batch(self._st, block, mags, *args))[:nb, :nm]
         return np.clip(out, 0.0, 1.0)
 
     def average_prob_at(self, thetas, mags, depth, u, v, weight) -> np.ndarray:
@@ -706,7 +753,7 @@ class CompletenessModel:
         mags = np.asarray(mags, np.float64)
         tp = np.concatenate([t, np.repeat(t[-1:], size - s, axis=0)])
         mp = np.concatenate([mags, np.full(size - s, mags[-1])])
-        out = _jit_average_at_batch(self._st, jnp.asarray(tp), jnp.asarray(mp),
+        out = _jit_average_at_batch(self._st, tp, mp,
                                     *self._footprint_args(depth, u, v, weight))
         return np.clip(np.asarray(out)[:s], 0.0, 1.0)
 
@@ -846,6 +893,23 @@ class CompletenessModel:
         return self._initial.copy()
 
     def _grid_initial(self) -> np.ndarray:
+        # the search depends only on the data, the link's family as searched, the plateau and floor settings
+        # and the priors of (m50, w, A, floor): the rungs of a selection share it (kept on the data object,
+        # which they share), and each would otherwise repeat about 60 ms of array work
+        st = self._st
+        pa, pb, _, _ = self._prior_arrays
+        fn = self.full_names
+        link = "logistic" if self.spec.link in ("logistic", "richards", "spline") else self.spec.link
+        used = [fn.index(n) for n in ("m50_0", "log_w", "logit_A", "logit_floor") if n in fn]
+        key = (link, bool(st.free_A), bool(st.free_floor), tuple(float(pa[j]) for j in used),
+               tuple(float(pb[j]) for j in used))
+        cache = self.data.__dict__.setdefault("_grid_starts", {})
+        if key not in cache:
+            cache[key] = self._grid_search()
+        return self._start_from(cache[key])
+
+    def _grid_search(self) -> tuple:
+        """The grid values ``(m50, w, A, floor)`` of highest likelihood times prior (see :meth:`initial`)."""
         data = self.data
         m = data.cov.m
         lo, hi = float(m.min()), float(m.max())
@@ -890,7 +954,7 @@ class CompletenessModel:
                         best = (m50_grid[idx[0]], w_grid[idx[1]], a, a * r)
         if best is None:  # pragma: no cover - every grid point non-finite cannot happen with clipped f
             best = (0.5 * (lo + hi), 0.2, 0.97, 0.01)
-        return self._start_from(best)
+        return best
 
     def _start_from(self, best) -> np.ndarray:
         """The starting theta for grid values ``best = (m50, w, A, floor)``; other parameters at their defaults."""
@@ -903,6 +967,9 @@ class CompletenessModel:
                 params[name] = pa[fn.index(name)]
         return self.inverse_transform(params)
 
+
+#: Hessians a model remembers (:meth:`CompletenessModel.hessian`).
+HESSIAN_MEMO = 4
 
 #: Rows of parameter vectors per compiled call of :meth:`CompletenessModel.log_prob_batch`.
 LOG_PROB_ROWS = 1024

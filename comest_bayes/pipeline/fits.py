@@ -20,6 +20,8 @@ from astropy.io import fits
 from astropy.table import Table
 
 from comest_bayes.bayes.fit import MIN_CLASS, FitEntry, fit_kind, footprint_grid, needs_smooth, purity_outcomes
+from comest_bayes.bayes.model import padded_size, padding_floor
+from comest_bayes.bayes.outcomes import compress_for, covariates_from_outcomes
 from comest_bayes.bayes.spec import load_spec
 from comest_bayes.config import RunConfig
 from comest_bayes.errors import InputError
@@ -47,20 +49,9 @@ def fit_task(task: dict) -> tuple:
     c0 = time.process_time()
     run = Path(task["run_dir"])
     kind, quantity, config = task["kind"], task["quantity"], task["config"]
-    if quantity == "completeness":
-        table = Table.read(run / layout.catalog(kind, "outcomes"), mask_invalid=False)
-        outcome_column = "detected"
-    else:
-        table = purity_outcomes(Table.read(run / layout.catalog(kind, "matched"), mask_invalid=False),
-                                Table.read(run / layout.catalog(kind, "false"), mask_invalid=False),
-                                config.matching.mag_column)
-        outcome_column = "real"
-        nreal = int(np.sum(table["real"]))
-        nfalse = len(table) - nreal
-        if min(nreal, nfalse) < MIN_CLASS:
-            return None, FitEntry(name=None, requested=task["requested"], cpu_seconds=0.0,
-                                  skipped=f"{nreal} real and {nfalse} false detections: a purity model needs at "
-                                          f"least {MIN_CLASS} of each; see the binned purity")
+    table, outcome_column, skipped = _task_table(task)
+    if skipped:
+        return None, FitEntry(name=None, requested=task["requested"], cpu_seconds=0.0, skipped=skipped)
     shared = task.get("shared_maps") or {}
     footprints, noise_grid = shared.get("footprints") or {}, shared.get("noise_grid")
     # the noise map is only read when the run did not pass the footprint histogram this fit needs and the grid
@@ -80,24 +71,65 @@ def fit_task(task: dict) -> tuple:
     return post, entry
 
 
+def _task_table(task: dict):
+    """The outcome table of a fit task: ``(table, outcome column, None)``, or ``(None, None, why)`` for a purity
+    fit with too few detections of a class."""
+    run, kind = Path(task["run_dir"]), task["kind"]
+    if task["quantity"] == "completeness":
+        return Table.read(run / layout.catalog(kind, "outcomes"), mask_invalid=False), "detected", None
+    table = purity_outcomes(Table.read(run / layout.catalog(kind, "matched"), mask_invalid=False),
+                            Table.read(run / layout.catalog(kind, "false"), mask_invalid=False),
+                            task["config"].matching.mag_column)
+    nreal = int(np.sum(table["real"]))
+    nfalse = len(table) - nreal
+    if min(nreal, nfalse) < MIN_CLASS:
+        return None, None, (f"{nreal} real and {nfalse} false detections: a purity model needs at least {MIN_CLASS} "
+                            f"of each; see the binned purity")
+    return table, "real", None
+
+
+def group_padding(tasks: list) -> int:
+    """The padded cell count the fits of ``tasks`` (one model, one worker) can share: the largest of their own.
+
+    Each task's outcomes are compressed as its fit will compress them (a few tens of ms); a task
+    that cannot be read counts for nothing (its fit reports the error).
+    """
+    size = 0
+    for task in tasks:
+        try:
+            table, column, skipped = _task_table(task)
+            if skipped:
+                continue
+            cov, outcome, meta = covariates_from_outcomes(table, image_shape=task["image_shape"], outcome_column=column)
+            size = max(size, padded_size(compress_for(load_spec(task["requested"]), cov, outcome, meta=meta).ncells))
+        except Exception:  # the fit itself raises it, with its context
+            continue
+    return size
+
+
 def fit_tasks(tasks: list) -> list:
     """:func:`fit_task` of each task in turn, in this one process: a list of their results.
 
     A worker process traces (and compiles, or loads from the compilation cache) the programs of a
-    model layout once, at its first fit; fits that share the layout (the completeness of every kind
-    of a run) therefore cost less CPU in one worker than in several (on the demo about 1.4 CPU-s of
-    a 3 CPU-s fit is that first trace).
+    model layout once per padded cell count, at its first fit; fits that share the layout (the
+    completeness of every kind of a run) therefore cost less CPU in one worker than in several (on
+    the demo about 1.4 CPU-s of a 3 CPU-s fit is that first trace).  Their cells are padded to one
+    size where the padding stays within a power of two (:func:`group_padding`,
+    :func:`comest_bayes.bayes.model.padding_floor`): kinds whose cell counts straddle a step (710 and
+    831 cells: 768 and 1024) then load one set of programs, not two.  Empty cells add nothing to a
+    likelihood, so the numbers are those of each fit alone (to rounding).
     """
     results = []
-    for task in tasks:
-        try:
-            results.append(fit_task(task))
-        except Exception as exc:
-            # the fits done before it are returned with the error (the caller records them, then raises it):
-            # a failing fit must not take its group's finished fits with it
-            exc.add_note("".join(traceback.format_exception(exc)).rstrip())
-            results.append(FitFailure(exc))
-            break
+    with padding_floor(group_padding(tasks) if len(tasks) > 1 else 0):
+        for task in tasks:
+            try:
+                results.append(fit_task(task))
+            except Exception as exc:
+                # the fits done before it are returned with the error (the caller records them, then raises it):
+                # a failing fit must not take its group's finished fits with it
+                exc.add_note("".join(traceback.format_exception(exc)).rstrip())
+                results.append(FitFailure(exc))
+                break
     return results
 
 

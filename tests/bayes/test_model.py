@@ -308,3 +308,83 @@ def test_warm_start_without_the_grid_search_equals_the_one_with_it():
     partial = model.warm_start(names[:2], theta[:2])
     j = model.names.index("logit_A")
     assert partial[j] == model.initial()[j]
+
+
+# --------------------------------------------------------------------------- work shared or remembered
+
+
+def test_padded_sizes_hold_the_cells_and_waste_at_most_a_third():
+    from comest_bayes.bayes.model import padded_size
+
+    assert [padded_size(g) for g in (1, 256, 257, 385, 673, 731, 769, 1025, 1537)] == \
+        [256, 256, 384, 512, 768, 768, 1024, 1536, 2048]
+    for g in range(257, 20000, 7):
+        size = padded_size(g)
+        assert g <= size <= 1.5 * g  # above 256 the steps are x1.5 and x4/3
+        assert padded_size(size) == size
+
+
+def test_remembered_hessian_follows_theta_and_tau():
+    """The Hessian memo returns the value a fresh model computes, for the theta and tau asked now:
+    changing tau (the spline's smoothness) or theta never serves an earlier Hessian."""
+    cov, y = synthetic(3000, 31)
+    data = compress_for("spline_depth", cov, y)
+    model = CompletenessModel("spline_depth", data)
+    theta = model.initial()
+    h1 = model.hessian(theta)
+    h1[0, 0] = 0.0  # the caller's copy: the memo is not changed through it
+    np.testing.assert_array_equal(model.hessian(theta), CompletenessModel("spline_depth", data).hessian(theta))
+    model.tau = 1.0
+    fresh = CompletenessModel("spline_depth", data)
+    fresh.tau = 1.0
+    h_tau = model.hessian(theta)
+    np.testing.assert_array_equal(h_tau, fresh.hessian(theta))
+    assert not np.allclose(h_tau, CompletenessModel("spline_depth", data).hessian(theta))  # tau matters
+    other = theta + 0.01
+    np.testing.assert_array_equal(model.hessian(other), fresh.hessian(other))
+    # the log posterior follows tau as well (its prior arrays are kept per tau)
+    assert model.log_prob(theta) == fresh.log_prob(theta)
+    model.tau = 0.3
+    assert model.log_prob(theta) == CompletenessModel("spline_depth", data).log_prob(theta)
+
+
+def test_rungs_on_one_data_set_share_the_grid_search_and_start_where_alone():
+    """The starting grid search is made once per data set for the rungs whose search is the same (the
+    logistic, Richards and spline rungs search the logistic they contain): each rung's start equals the
+    one it finds on a fresh copy of the data."""
+    from dataclasses import replace as dc_replace
+
+    cov, y = synthetic(4000, 32)
+    data = compress_for("auto", cov, y)
+    starts = {}
+    for name in ("logistic", "logistic_depth", "richards_depth", "spline_depth"):
+        starts[name] = CompletenessModel(name, data).initial()
+        alone = CompletenessModel(name, dc_replace(data)).initial()
+        np.testing.assert_array_equal(starts[name], alone)
+    assert len(data.__dict__["_grid_starts"]) == 1
+    # the shared part is the same for all: m50_0 and log_w
+    for name in starts:
+        np.testing.assert_array_equal(starts[name][:2], starts["logistic"][:2])
+
+
+def test_padding_floor_shares_a_size_within_a_power_of_two_and_changes_no_density():
+    """A worker's fits of one model share the largest padded size of the group when it is no larger than
+    the power of two above their own count; the padding (empty cells) leaves every density unchanged."""
+    from comest_bayes.bayes.model import padded_size, padding_floor
+
+    with padding_floor(1024):
+        assert [padded_size(g) for g in (710, 831, 513, 300, 1100)] == [1024, 1024, 1024, 384, 1536]
+    with padding_floor(768):
+        assert padded_size(673) == padded_size(731) == 768
+    assert padded_size(710) == 768  # the floor ends with the block
+    cov, y = synthetic(3000, 33)
+    data = compress_for("spline_depth", cov, y)
+    alone = CompletenessModel("spline_depth", data)
+    pow2 = 256 * 2 ** math.ceil(math.log2(data.ncells / 256))
+    assert pow2 > padded_size(data.ncells)  # this data set's count lies between the steps (1024, 1536]
+    with padding_floor(pow2):
+        wide = CompletenessModel("spline_depth", data)
+    assert wide._data[0].shape[0] == pow2 > alone._data[0].shape[0]
+    theta = alone.initial()
+    assert wide.log_prob(theta) == pytest.approx(alone.log_prob(theta), rel=1e-13, abs=1e-9)
+    np.testing.assert_allclose(wide.value_and_grad(theta)[1], alone.value_and_grad(theta)[1], rtol=1e-11, atol=1e-9)

@@ -209,3 +209,25 @@ def test_two_pass_crossing_magnitudes_equal_the_full_fine_grid():
         want = crossing_magnitudes(grid, f, level)
         np.testing.assert_allclose(values, want, atol=2e-3)
         assert np.all(np.isfinite(values))
+
+
+def test_footprint_histogram_in_row_blocks_equals_one_pass(monkeypatch):
+    """The pixel pass reads the maps in blocks of rows; each pixel's row and column must be its own in
+    every block (blocks of 7 rows, an odd size, against one block holding the whole image)."""
+    import comest_bayes.bayes.posterior as P
+
+    noise, mask = _maps(4)
+    for nuv in (1, 8):
+        whole = FootprintHistogram.from_maps(noise, mask, ddepth=0.02, nuv=nuv)
+        monkeypatch.setattr(P, "FOOTPRINT_CHUNK", 7 * SHAPE[1])
+        blocks = FootprintHistogram.from_maps(noise, mask, ddepth=0.02, nuv=nuv)
+        monkeypatch.undo()
+        np.testing.assert_array_equal(blocks.n, whole.n)
+        np.testing.assert_array_equal(blocks.block, whole.block)
+        np.testing.assert_allclose(blocks.u, whole.u, rtol=0, atol=1e-12)
+        np.testing.assert_allclose(blocks.v, whole.v, rtol=0, atol=1e-12)
+        np.testing.assert_allclose(blocks.level, whole.level, rtol=0, atol=1e-12)
+        # and the mean position of the unmasked pixels is theirs
+        jj, ii = np.nonzero(~mask)
+        assert np.sum(blocks.n * blocks.v) / blocks.npix == pytest.approx(np.mean(2.0 * jj / (SHAPE[0] - 1) - 1.0),
+                                                                           abs=1e-12)
