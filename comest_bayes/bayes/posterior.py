@@ -550,7 +550,7 @@ class CompletenessPosterior:
         return s
 
     def _spatial(self) -> bool:
-        return self.spec.spatial != "none"
+        return self.spec.is_spatial
 
     def _to_pixels(self, x, y, ra, dec):
         if ra is not None or dec is not None:
