@@ -710,8 +710,10 @@ class CompletenessPosterior:
         path = Path(path)
         spec_d = dataclasses.asdict(self.spec)
         spec_d.pop("source", None)
-        if not spec_d.get("candidates"):
-            spec_d.pop("candidates", None)
+        # keys at their defaults are left out, so files of models without them read as before
+        for key in ("candidates", "width_candidates", "width_order"):
+            if not spec_d.get(key):
+                spec_d.pop(key, None)
         spec = dumps(spec_d)
         with atomic_path(path) as tmp:
             with open(tmp, "wb") as fh:

@@ -137,3 +137,24 @@ def test_the_image_average_with_a_positional_width_matches_the_pixel_average():
     # without position blocks the average misses the width's variation (the check has teeth)
     flat = Footprint.from_maps(noise, mask, sref, ddepth=0.02, nuv=1)
     assert np.max(np.abs(average_prob(model, theta[None, :], mags, flat)[0] - brute)) > 1e-3
+
+
+def test_a_posterior_of_a_width_rung_saves_and_reloads(tmp_path):
+    from comest_bayes.bayes.posterior import CompletenessPosterior
+
+    spec = load_spec("logistic_depth_width_uv")
+    cov, det = _outcomes(300, 0.0, 0.0, seed=4)
+    model = CompletenessModel(spec, compress_for(spec, cov, det))
+    theta = model.inverse_transform({"m50_0": 24.0, "w": 0.2, "beta_depth": 1.0, "w_10": 0.5})
+    post = CompletenessPosterior(spec=spec, samples=np.repeat(theta[None, :], 4, axis=0), names=list(model.names),
+                                 meta={"sigma_ref": 1.0, "hlr_ref": None, "image_shape": (50, 60),
+                                       "mag_range": [22.0, 26.0], "injected_range": [22.0, 26.0],
+                                       "depth_range": [0.0, 0.0], "kind": "point", "quantity": "completeness",
+                                       "tau": None},
+                                 noise_grid=None, footprint=np.array([[10.0, 10.0], [50.0, 40.0]]), wcs_header=None,
+                                 diagnostics={})
+    again = CompletenessPosterior.load(post.save(tmp_path / "p.npz"))
+    assert again.spec.width_order == 1 and again.names == post.names
+    # the width follows the position: at u = +1 (x = 59) f at m50 + 0.3 is higher than at u = -1 (wider transition)
+    f = again.completeness(24.3, np.array([0.0, 59.0]), np.array([25.0, 25.0]), nsamples=None)
+    assert f.shape[-1] == 2 and np.all(f[..., 1] > f[..., 0])
