@@ -22,10 +22,10 @@ from comest_bayes.errors import InputError
 from comest_bayes.bayes.inference import IdentifiabilityWarning, fit, fit_map
 from comest_bayes.bayes.model import CompletenessModel
 from comest_bayes.bayes.outcomes import compress_for, covariate_warnings, covariates_from_outcomes
-from comest_bayes.bayes.spec import load_spec, resolve_candidates
+from comest_bayes.bayes.spec import load_spec, resolve_candidates, resolve_width_candidates
 from comest_bayes.bayes.posterior import (CompletenessPosterior, Footprint, FootprintHistogram, average_crossings, average_prob, coarse_noise_map, footprint_sample)
 from comest_bayes.seeding import Stream, int_seed_for, rng_for
-from comest_bayes.bayes.selection import choose_tau, select_model
+from comest_bayes.bayes.selection import WIDTH_TEST_P, choose_tau, select_model, width_position_test
 
 __all__ = ["fit_kind", "FitEntry", "purity_outcomes", "warm_state", "shared_maps", "footprint_grid", "needs_smooth",
            "MIN_OUTCOMES", "MIN_CLASS"]
@@ -182,15 +182,17 @@ def targeted_quantities(cells: Footprint, probes, lo: float, hi: float):
 
 
 def footprint_grid(smooth: bool) -> tuple[float, int]:
-    """``(ddepth, nuv)`` of the footprint cells of a fit: finer in depth without a smooth spatial term,
-    8 x 8 position blocks with one."""
+    """``(ddepth, nuv)`` of the footprint cells of a fit: finer in depth without a term in the image
+    coordinates (smooth m50 or positional width), 8 x 8 position blocks with one."""
     return (0.02, 8) if smooth else (0.01, 1)
 
 
 def needs_smooth(requested: str) -> bool:
-    """Whether the model (or any candidate of the selection) ``requested`` has a smooth spatial term."""
+    """Whether the model (or any candidate of the selection) ``requested`` has a term in the image
+    coordinates (smooth m50 or positional width; the width candidates of a selection are fitted only
+    when its width test asks, and take their footprint cells then)."""
     spec = load_spec(requested)
-    return any(c.uses_smooth for c in (resolve_candidates(spec) if spec.is_selection else [spec]))
+    return any(c.uses_position for c in (resolve_candidates(spec) if spec.is_selection else [spec]))
 
 
 def footprint_histograms(noise: np.ndarray | None, mask: np.ndarray, requested) -> dict:
@@ -290,18 +292,19 @@ def fit_kind(outcomes: Table, *, kind: str, quantity: str, requested: str, confi
     data = compress_for(spec, cov, outcome, meta=meta)
     seed = int_seed_for(config.seed, Stream.FIT, quantity, kind)
     candidates = resolve_candidates(spec) if spec.is_selection else [spec]
-    smooth = any(c.uses_smooth for c in candidates)
-    # every unmasked pixel, grouped into weighted covariate cells: the exact image average
-    if footprint_points is not None:
-        grid = footprint_grid(smooth)
-        cells = Footprint.from_points(*footprint_points, data.meta.get("sigma_ref"), image_shape, ddepth=grid[0],
-                                      nuv=grid[1])
-    else:
-        grid = footprint_grid(smooth)
+
+    def footprint_cells(position: bool) -> Footprint:
+        # every unmasked pixel, grouped into weighted covariate cells: the exact image average
+        grid = footprint_grid(position)
+        if footprint_points is not None:
+            return Footprint.from_points(*footprint_points, data.meta.get("sigma_ref"), image_shape, ddepth=grid[0],
+                                         nuv=grid[1])
         hist = (footprints or {}).get(grid)
         if hist is None:
             hist = FootprintHistogram.from_maps(noise, mask, ddepth=grid[0], nuv=grid[1])
-        cells = Footprint.from_histogram(hist, data.meta.get("sigma_ref"))
+        return Footprint.from_histogram(hist, data.meta.get("sigma_ref"))
+
+    cells = footprint_cells(any(c.uses_position for c in candidates))
     mag_lo, mag_hi = float(mag_range[0]), float(mag_range[1])
     edges = R.magnitude_edges(mag_lo, mag_hi, config.ratios.mag_bin)
     selection = None
@@ -312,9 +315,33 @@ def fit_kind(outcomes: Table, *, kind: str, quantity: str, requested: str, confi
         quantities = targeted_quantities(cells, probes, mag_lo, mag_hi)
         sel = select_model(data, candidates, seed=seed, quantities=quantities, mag_edges=edges)
         chosen_spec = next(c for c in candidates if c.name == sel.chosen)
+        width_test = None
+        width_cands = resolve_width_candidates(spec)
+        if width_cands and not chosen_spec.uses_position and "uv" in (meta.get("available") or ()):
+            # the width test of the chosen rung: one Jacobian of its cells, no refit (docs/bayesian.md,
+            # "Positional width"); only a scene whose width differs across the image pays for position
+            test = width_position_test(sel.models[sel.chosen], sel.fits[sel.chosen].map.theta, cov.u, cov.v,
+                                       outcome)
+            width_test = {**test.to_dict(), "threshold": WIDTH_TEST_P, "escalated": bool(test.p_value < WIDTH_TEST_P)}
+            if width_test["escalated"]:
+                first = {"chosen": sel.chosen, "table": sel.to_dict()["table"]}
+                candidates = [chosen_spec] + width_cands
+                data = compress_for(candidates, cov, outcome, meta=meta)
+                cells = footprint_cells(True)
+                quantities = targeted_quantities(cells, probes, mag_lo, mag_hi)
+                # the chosen rung starts from its MAP on the coarser cells (the same parameters)
+                warm_from = (list(sel.models[sel.chosen].names), sel.fits[sel.chosen].map.theta)
+                sel = select_model(data, candidates, seed=seed, quantities=quantities, mag_edges=edges,
+                                   start=warm_from)
+                chosen_spec = next(c for c in candidates if c.name == sel.chosen)
+                width_test["first_selection"] = first
+                log(f"fit: {kind} {quantity}: the width varies across the image (score test p = "
+                    f"{test.p_value:.2g}); selection escalated to {[c.name for c in candidates]}")
         model = sel.models[sel.chosen]
         mp = sel.fits[sel.chosen].map
         selection = {k: v for k, v in sel.to_dict().items() if k != "diagnostics"}
+        if width_test is not None:
+            selection["width_test"] = width_test
         chosen_loo = sel.loo[sel.chosen]
         if chosen_loo.n_bad_k:
             warn.append(f"leave-one-out of the chosen model {sel.chosen}: {chosen_loo.n_bad_k} of {chosen_loo.n} "

@@ -55,6 +55,7 @@ class _Structure(NamedTuple):
     free_floor: bool
     n_knots: int      # free knot log-rates of the monotone spline (0: no spline compiled in)
     n_smooth: int     # columns of the smooth spatial basis
+    n_wfield: int = 0  # columns of the Legendre field of log w in (u, v) (width_order > 0)
 
 
 #: Families of the links: the flexible rungs share the "flex" code path.
@@ -70,17 +71,18 @@ def _slots(st: _Structure) -> dict:
     return {"A": 2 if st.free_A else None, "floor": 2 + int(st.free_A) if st.free_floor else None,
             "beta_depth": i, "w_depth": i + 1, "beta_size": i + 2, "log_nu": i + 3,
             "eta": (i + 4, i + 4 + st.n_knots), "coef": (i + 4 + st.n_knots, i + 4 + st.n_knots + st.n_smooth),
-            "ndim": i + 4 + st.n_knots + st.n_smooth}
+            "wcoef": (i + 4 + st.n_knots + st.n_smooth, i + 4 + st.n_knots + st.n_smooth + st.n_wfield),
+            "ndim": i + 4 + st.n_knots + st.n_smooth + st.n_wfield}
 
 
-def _layout_names(st: _Structure, smooth_names) -> list[str]:
+def _layout_names(st: _Structure, smooth_names, width_names=()) -> list[str]:
     names = ["m50_0", "log_w"]
     if st.free_A:
         names.append("logit_A")
     if st.free_floor:
         names.append("logit_floor")
     names += ["beta_depth", "w_depth", "beta_size", "log_nu"] + [f"eta_{k}" for k in range(st.n_knots)]
-    return names + list(smooth_names)
+    return names + list(smooth_names) + list(width_names)
 
 
 def _unpack(st: _Structure, theta):
@@ -105,14 +107,18 @@ def _unpack(st: _Structure, theta):
         p[key] = theta[sl[key]]
     p["eta"] = theta[sl["eta"][0]:sl["eta"][1]]
     p["coef"] = theta[sl["coef"][0]:sl["coef"][1]]
+    p["wcoef"] = theta[sl["wcoef"][0]:sl["wcoef"][1]]
     return p
 
 
 def _m50_and_logw(st: _Structure, p, depth, size, basis):
+    # basis columns: the smooth field of m50 (n_smooth), then the field of log w (n_wfield)
     m50 = p["m50_0"] + p["beta_depth"] * depth + p["beta_size"] * size
     if st.n_smooth:
-        m50 = m50 + basis @ p["coef"]
+        m50 = m50 + basis[..., :st.n_smooth] @ p["coef"]
     log_w = p["log_w"] + p["w_depth"] * depth
+    if st.n_wfield:
+        log_w = log_w + basis[..., st.n_smooth:st.n_smooth + st.n_wfield] @ p["wcoef"]
     return m50, jnp.clip(log_w, -LOG_W_CLIP, LOG_W_CLIP)
 
 
@@ -329,25 +335,38 @@ class ModelLayout:
     Attributes
     ----------
     structure : _Structure
-        Family, free plateau/floor, spline knots and smooth columns.
+        Family, free plateau/floor, spline knots, smooth and width-field columns.
     smooth_basis, smooth_order : str, int
         The smooth basis of the layout (used by every spec with a smooth term).
+    width_order : int
+        Total degree of the Legendre field of log w (used by every spec with ``width_order > 0``).
     """
 
     structure: _Structure
     smooth_basis: str = "poly"
     smooth_order: int = 2
+    width_order: int = 0
 
     @property
     def smooth_names(self) -> list[str]:
         return smooth_basis_names(self.smooth_basis, self.smooth_order) if self.structure.n_smooth else []
 
+    @property
+    def width_names(self) -> list[str]:
+        return width_field_names(self.width_order) if self.structure.n_wfield else []
+
+
+def width_field_names(order: int) -> list[str]:
+    """Names of the coefficients of the Legendre field of log w: ``w_ij`` (degrees in u, v)."""
+    return ["w_" + name[2:] for name in smooth_basis_names("poly", order)] if order > 0 else []
+
 
 def _spec_layout(spec: ModelSpec) -> ModelLayout:
     n_smooth = len(smooth_basis_names(spec.smooth_basis, spec.smooth_order)) if spec.uses_smooth else 0
     st = _Structure(family=_FAMILY[spec.link], free_A=spec.plateau == "free", free_floor=spec.floor == "free",
-                    n_knots=spec.spline_knots if spec.link == "spline" else 0, n_smooth=n_smooth)
-    return ModelLayout(st, spec.smooth_basis, spec.smooth_order)
+                    n_knots=spec.spline_knots if spec.link == "spline" else 0, n_smooth=n_smooth,
+                    n_wfield=len(width_field_names(spec.width_order)))
+    return ModelLayout(st, spec.smooth_basis, spec.smooth_order, spec.width_order)
 
 
 def shared_layout(specs) -> ModelLayout:
@@ -377,9 +396,14 @@ def shared_layout(specs) -> ModelLayout:
     if len(smooth) > 1:
         raise ConfigError(f"specs with different smooth bases {sorted(smooth)} cannot share a layout.")
     basis, order = next(iter(smooth)) if smooth else ("poly", 2)
+    worders = {lay.width_order for lay in layouts if lay.structure.n_wfield}
+    if len(worders) > 1:
+        raise ConfigError(f"specs with different width_order {sorted(worders)} cannot share a layout.")
+    worder = next(iter(worders)) if worders else 0
     st = _Structure(family="flex", free_A=sts[0].free_A, free_floor=sts[0].free_floor,
-                    n_knots=next(iter(knots)) if knots else 0, n_smooth=max(st.n_smooth for st in sts))
-    return ModelLayout(st, basis, order)
+                    n_knots=next(iter(knots)) if knots else 0, n_smooth=max(st.n_smooth for st in sts),
+                    n_wfield=len(width_field_names(worder)))
+    return ModelLayout(st, basis, order, worder)
 
 
 class CompletenessModel:
@@ -461,11 +485,13 @@ class CompletenessModel:
             raise ConfigError(f"model {spec.name!r} has {own.structure.n_knots} spline knots, the layout {st.n_knots}.")
         if spec.uses_smooth and (own.smooth_names != layout.smooth_names):
             raise ConfigError(f"model {spec.name!r} has another smooth basis than the layout.")
+        if spec.uses_width_position and (own.width_names != layout.width_names):
+            raise ConfigError(f"model {spec.name!r} has another width_order than the layout.")
         self.spec = spec
         self.data = data
         self.layout = layout
         self._st = st
-        self.full_names = _layout_names(st, layout.smooth_names)
+        self.full_names = _layout_names(st, layout.smooth_names, layout.width_names)
         sl = _slots(st)
         free = {"m50_0": "m50_0", "log_w": "log_w"}
         if st.free_A:
@@ -484,6 +510,8 @@ class CompletenessModel:
             free.update({f"eta_{k}": None for k in range(st.n_knots)})
         self.smooth_names = smooth_basis_names(spec.smooth_basis, spec.smooth_order) if spec.uses_smooth else []
         free.update({name: "smooth" for name in self.smooth_names})
+        self.width_names = width_field_names(spec.width_order)
+        free.update({name: "w_uv" for name in self.width_names})
         self.names = [n for n in self.full_names if n in free]
         self.ndim = len(self.names)
         self._free_idx = np.array([self.full_names.index(n) for n in self.names], dtype=np.int64)
@@ -544,11 +572,18 @@ class CompletenessModel:
         return self._st
 
     def basis(self, cov: Covariates) -> np.ndarray:
-        """The smooth spatial basis at the covariates' ``(u, v)``, shape (N, J) (J = 0 without a smooth term)."""
-        n_smooth = self._st.n_smooth if hasattr(self, "_st") else 0
-        if not n_smooth:
-            return np.zeros((len(cov), 0))
-        return smooth_basis(cov.u, cov.v, self.layout.smooth_basis, self.layout.smooth_order)
+        """The spatial basis columns at the covariates' ``(u, v)``, shape (N, J).
+
+        The smooth field of m50 (``n_smooth`` columns), then the Legendre field of log w
+        (``n_wfield`` columns); J = 0 without either term.
+        """
+        st = self._st if hasattr(self, "_st") else None
+        cols = [np.zeros((len(cov), 0))]
+        if st is not None and st.n_smooth:
+            cols.append(smooth_basis(cov.u, cov.v, self.layout.smooth_basis, self.layout.smooth_order))
+        if st is not None and st.n_wfield:
+            cols.append(smooth_basis(cov.u, cov.v, "poly", self.layout.width_order))
+        return np.concatenate(cols, axis=1) if len(cols) > 1 else cols[0]
 
     def full(self, theta) -> np.ndarray:
         """The layout's full parameter vector(s) for free parameters ``theta`` (D,) or (S, D)."""

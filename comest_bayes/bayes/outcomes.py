@@ -526,7 +526,7 @@ def covariates_needed(spec: ModelSpec) -> tuple[str, ...]:
     need = ["m"]
     if spec.uses_depth:
         need.append("depth")
-    if spec.uses_smooth:
+    if spec.uses_position:
         need.append("uv")
     if spec.size_covariate:
         need.append("size")

@@ -553,7 +553,7 @@ class CompletenessPosterior:
         return s
 
     def _spatial(self) -> bool:
-        return self.spec.spatial != "none"
+        return self.spec.is_spatial
 
     def _to_pixels(self, x, y, ra, dec):
         if ra is not None or dec is not None:
@@ -713,8 +713,10 @@ class CompletenessPosterior:
         path = Path(path)
         spec_d = dataclasses.asdict(self.spec)
         spec_d.pop("source", None)
-        if not spec_d.get("candidates"):
-            spec_d.pop("candidates", None)
+        # keys at their defaults are left out, so files of models without them read as before
+        for key in ("candidates", "width_candidates", "width_order"):
+            if not spec_d.get(key):
+                spec_d.pop(key, None)
         spec = dumps(spec_d)
         with atomic_path(path) as tmp:
             with open(tmp, "wb") as fh:

@@ -23,7 +23,7 @@ from comest_bayes.bayes.checks import P_WARN, shape_check
 from comest_bayes.bayes.spec import resolve_candidates, load_spec
 
 __all__ = ["LooWarning", "LooResult", "SelectionResult", "loo_grouped", "compare_loo", "select_model",
-           "KHAT_THRESHOLD"]
+           "KHAT_THRESHOLD", "WidthTest", "width_position_test", "WIDTH_TEST_P"]
 
 #: Pareto k-hat above which the PSIS estimate of an observation is unreliable
 #: (Vehtari et al. 2024: above 0.7 the importance-sampling error converges too slowly).
@@ -493,7 +493,7 @@ def select_model(data, candidates, *, seed: int, margin: float = 4.0, margin_se:
                  min_ess: float = 400, max_steps: int = 20000, chunk: int = 500, nwalkers: int | None = None,
                  nstarts: int = 2, moves="de", loo_draws: int | None = 1000, model_factory=None,
                  progress: bool = False, scoring: str = "laplace", quantities=None, mag_edges=None,
-                 adequacy_fraction: float = ADEQUACY_FRACTION) -> SelectionResult:
+                 adequacy_fraction: float = ADEQUACY_FRACTION, start=None) -> SelectionResult:
     r"""Fit candidate models (simplest first) and keep the simplest adequate one as good as the best.
 
     **Scoring** (``scoring="laplace"``, the default): every candidate gets a
@@ -566,6 +566,9 @@ m SE}_\Delta)` nats).  If no adequate candidate is
         Magnitude bins of the shape check.
     adequacy_fraction : float
         See *Adequacy*.
+    start : (names, theta), optional
+        A MAP of another fit (e.g. of the first candidate on other cells) that the first candidate
+        starts from (:meth:`CompletenessModel.warm_start`); the later ones start from the rung below.
 
     Returns
     -------
@@ -606,7 +609,7 @@ m SE}_\Delta)` nats).  If no adequate candidate is
         factory = model_factory
 
     fits, loos, models, seconds, extra = {}, {}, {}, {}, {}
-    prev = None
+    prev = start
     for spec, name in zip(candidates, names):
         t1 = time.perf_counter()
         model = factory(spec, data)
@@ -700,3 +703,126 @@ m SE}_\Delta)` nats).  If no adequate candidate is
             f"delta_elpd = {crow['delta_elpd']:.2f}, se_delta = {crow['se_delta']:.2f}")
     return SelectionResult(table=table, chosen=chosen, best=best, rule=rule, fits=fits, loo=loos, models=models,
                            seconds=time.perf_counter() - t0)
+
+
+#: The width test (:func:`width_position_test`) escalates a selection to its positional-width
+#: candidates when its p-value falls below this: one spurious escalation (a more expensive fit, not
+#: a different answer unless the escalated rung wins the selection) per thousand scenes whose width
+#: does not vary over the image.
+WIDTH_TEST_P = 1e-3
+
+
+@dataclass
+class WidthTest:
+    """Result of :func:`width_position_test`.
+
+    Attributes
+    ----------
+    statistic : float
+        Score (Lagrange-multiplier) statistic of the plane ``w_10 u + w_01 v`` in log w.
+    dof : int
+        Its degrees of freedom (2; 1 when one coordinate does not vary).
+    p_value : float
+        Chi-square tail probability of ``statistic``.
+    slopes : ndarray, shape (dof,)
+        One Newton step from the fitted model towards the plane: the slopes of log w on ``u`` and
+        ``v`` the data ask for (about their maximum-likelihood values when they are small).
+    slope_sd : ndarray, shape (dof,)
+        Their standard errors.
+    """
+
+    statistic: float
+    dof: int
+    p_value: float
+    slopes: np.ndarray
+    slope_sd: np.ndarray
+
+    def to_dict(self) -> dict:
+        return {"statistic": float(self.statistic), "dof": int(self.dof), "p_value": float(self.p_value),
+                "slopes": [float(v) for v in self.slopes], "slope_sd": [float(v) for v in self.slope_sd]}
+
+
+def width_position_test(model, theta, u, v, detected) -> WidthTest:
+    r"""Does the transition width vary over the image?  A score test of a fitted model, no refit.
+
+    The alternative adds a plane to the log width, ``log w -> log w + w_10 u + w_01 v``.  Its score
+    at ``w = 0`` is, per injection, :math:`s_i = (\partial \ell_i / \partial \log w)\,(u_i, v_i)`:
+    the model's own cell gradients (cells hold their members at one covariate, so the gradient is
+    shared by the members of a cell with the same outcome) times each member's position, summed
+    with ``bincount`` over the injections' cells (``model.data.index``).  With the information
+    estimated by the outer products of the per-injection scores :math:`J_i = (g_i, s_i)`
+    (:math:`g_i = \partial \ell_i / \partial \theta`), the efficient score of the plane (the part
+    the model's own parameters cannot absorb) and its variance are
+
+    .. math:: s^* = s - I_{s\theta} I_{\theta\theta}^{-1} g, \qquad
+              V = I_{ss} - I_{s\theta} I_{\theta\theta}^{-1} I_{\theta s},
+
+    and :math:`s^{*T} V^{-1} s^*` is chi-square with 2 degrees of freedom when the width does not
+    vary with position (Rao's score test).  The cost is one Jacobian of the cell terms, already
+    compiled for the Laplace leave-one-out.
+
+    Parameters
+    ----------
+    model : CompletenessModel
+        Fitted to cells that do *not* resolve position (its data must carry ``index``).
+    theta : array, shape (D,)
+        Its MAP.
+    u, v : array, shape (N,)
+        Normalised image coordinates of the injections, in the order of ``model.data.index``.
+    detected : array of bool, shape (N,)
+        Their outcomes.
+
+    Returns
+    -------
+    WidthTest
+    """
+    from scipy.special import chdtrc  # chi-square tail (scipy.stats costs a second to import)
+
+    data = model.data
+    if data.index is None:
+        raise InputError("width_position_test: the model's data has no cell index of the injections.")
+    index = np.asarray(data.index, np.int64)
+    u = np.asarray(u, np.float64)
+    v = np.asarray(v, np.float64)
+    det = np.asarray(detected, bool)
+    if u.shape != index.shape or v.shape != index.shape or det.shape != index.shape:
+        raise InputError(f"width_position_test: u, v and detected need one entry per injection ({index.size}), "
+                         f"got {u.shape}, {v.shape} and {det.shape}.")
+    grads, _ = model.cell_gradients(np.asarray(theta, np.float64))  # (G, 2, D)
+    g = data.ncells
+    grp = index * 2 + (~det).astype(np.int64)  # group (cell, outcome): 0 detected, 1 missed
+    n_grp = np.bincount(grp, minlength=2 * g).reshape(g, 2)
+    sums = {}
+    for name, x in (("u", u), ("v", v), ("uu", u * u), ("uv", u * v), ("vv", v * v)):
+        sums[name] = np.bincount(grp, weights=x, minlength=2 * g).reshape(g, 2)
+    a = grads.reshape(2 * g, -1)                      # dl/dtheta per group
+    i_w = list(model.names).index("log_w")
+    gw = a[:, i_w]                                    # dl/dlog w per group
+    n = n_grp.reshape(-1).astype(np.float64)
+    su, sv = sums["u"].reshape(-1), sums["v"].reshape(-1)
+    used = n > 0
+    a, gw, n, su, sv = a[used], gw[used], n[used], su[used], sv[used]
+    suu, suv, svv = (sums[k].reshape(-1)[used] for k in ("uu", "uv", "vv"))
+    score_t = n @ a
+    score_s = np.array([gw @ su, gw @ sv])
+    i_tt = (a * n[:, None]).T @ a
+    i_ts = np.stack([(a * (gw * su)[:, None]).sum(0), (a * (gw * sv)[:, None]).sum(0)], axis=1)
+    g2 = gw * gw
+    i_ss = np.array([[g2 @ suu, g2 @ suv], [g2 @ suv, g2 @ svv]])
+    keep = [j for j, x in enumerate((u, v)) if np.ptp(x) > 0]
+    if not keep:
+        return WidthTest(0.0, 0, 1.0, np.zeros(0), np.zeros(0))
+    score_s, i_ts, i_ss = score_s[keep], i_ts[:, keep], i_ss[np.ix_(keep, keep)]
+    tt_inv = np.linalg.pinv(i_tt)
+    eff = score_s - i_ts.T @ tt_inv @ score_t
+    var = i_ss - i_ts.T @ tt_inv @ i_ts
+    var = 0.5 * (var + var.T)
+    try:
+        vinv = np.linalg.inv(var)
+    except np.linalg.LinAlgError:
+        vinv = np.linalg.pinv(var)
+    stat = float(eff @ vinv @ eff)
+    if not math.isfinite(stat) or stat < 0:
+        stat = 0.0
+    dof = len(keep)
+    return WidthTest(stat, dof, float(chdtrc(dof, stat)), vinv @ eff, np.sqrt(np.clip(np.diag(vinv), 0, None)))

@@ -22,6 +22,7 @@ __all__ = [
     "load_spec",
     "list_specs",
     "resolve_candidates",
+    "resolve_width_candidates",
     "spec_from_mapping",
     "with_priors",
     "DEFAULT_PRIORS",
@@ -53,6 +54,9 @@ SMOOTH_ORDER_RANGE = {"poly": (1, 4), "bspline": (4, 8)}
 #: * ``beta_depth``: slope of m50 on d; 1 is the background-limited expectation
 #:   (m50 moves with -2.5 log10 sigma).
 #: * ``w_depth``: slope of log w on d (only with ``width_depth``).
+#: * ``w_uv``: every coefficient of the Legendre field of log w in ``(u, v)``
+#:   (only with ``width_order > 0``); 0.5 lets the width change by a factor
+#:   e^0.5 from the image centre to an edge at 1 sigma.
 #: * ``beta_size``: slope of m50 on log10(hlr / hlr_ref) (galaxies).
 #: * ``smooth``: every coefficient of the smooth spatial basis (mag), shrinkage
 #:   towards a flat field.
@@ -65,10 +69,14 @@ DEFAULT_PRIORS: dict[str, dict[str, Any]] = {
     "floor": {"dist": "beta", "a": 1.0, "b": 50.0},
     "beta_depth": {"dist": "normal", "mu": 1.0, "sigma": 1.0},
     "w_depth": {"dist": "normal", "mu": 0.0, "sigma": 0.5},
+    "w_uv": {"dist": "normal", "mu": 0.0, "sigma": 0.5},
     "beta_size": {"dist": "normal", "mu": 0.0, "sigma": 2.0},
     "smooth": {"dist": "normal", "mu": 0.0, "sigma": 0.3},
     "log_nu": {"dist": "normal", "mu": 0.0, "sigma": 1.0},
 }
+
+#: Allowed total degree of the positional field of log w (0: none).
+WIDTH_ORDER_RANGE = (0, 2)
 
 #: Allowed number of free knots of the monotone spline (knots at t = -6, -5, ... in units of w;
 #: at least 7 so that the anchor at t = 0 has a free knot on each side).
@@ -101,6 +109,11 @@ class ModelSpec:
         Default 2.
     width_depth : bool
         If True, ``log w = log_w + w_depth * d``.  Default False.
+    width_order : int
+        Total degree (0-2) of a Legendre field in ``(u, v)`` added to ``log w``:
+        0 (default) none, 1 a plane ``w_10 P_1(u) + w_01 P_1(v)``, 2 adds the
+        three second-degree products.  Every term averages to zero over the
+        image, so ``log_w`` stays the field-average log width.
     size_covariate : bool
         If True, ``m50 += beta_size * log10(hlr / hlr_ref)``.  Default False.
     plateau : {"free", "fixed"}
@@ -113,6 +126,11 @@ class ModelSpec:
     candidates : tuple of str
         Non-empty for a selection spec: the specs (names or paths) to fit,
         simplest first.
+    width_candidates : tuple of str
+        Selection specs only: positional-width rungs (``width_order > 0``)
+        fitted after the selection, with the chosen rung, when the width test
+        of the chosen rung says the transition width differs across the image
+        (``docs/bayesian.md``, "Positional width").  Default none.
     description : str
         Free text.
     kind : {"completeness", "purity"}
@@ -138,11 +156,13 @@ class ModelSpec:
     smooth_basis: str = "poly"
     smooth_order: int = 2
     width_depth: bool = False
+    width_order: int = 0
     size_covariate: bool = False
     plateau: str = "free"
     floor: str = "free"
     priors: dict = field(default_factory=dict)
     candidates: tuple = ()
+    width_candidates: tuple = ()
     description: str = ""
     kind: str = "completeness"
     magnitude: str = "true"
@@ -161,6 +181,10 @@ class ModelSpec:
                and lo <= self.smooth_order <= hi, "smooth_order", self.smooth_order,
                f"an integer in [{lo}, {hi}] for smooth_basis = {self.smooth_basis!r}")
         _check(isinstance(self.width_depth, bool), "width_depth", self.width_depth, "true or false")
+        lo_w, hi_w = WIDTH_ORDER_RANGE
+        _check(isinstance(self.width_order, int) and not isinstance(self.width_order, bool)
+               and lo_w <= self.width_order <= hi_w, "width_order", self.width_order,
+               f"an integer in [{lo_w}, {hi_w}] (0: no positional width, 1: a plane in (u, v), 2: degree 2)")
         _check(isinstance(self.size_covariate, bool), "size_covariate", self.size_covariate, "true or false")
         _check(self.plateau in FREE_FIXED, "plateau", self.plateau, f"one of {list(FREE_FIXED)}")
         _check(self.floor in FREE_FIXED, "floor", self.floor, f"one of {list(FREE_FIXED)}")
@@ -185,6 +209,18 @@ class ModelSpec:
                "candidates", cands, "a list of spec names or paths")
         if len(set(cands)) != len(cands):
             raise ConfigError(f"invalid candidates = {list(cands)!r}: a candidate is listed twice.")
+        wc = self.width_candidates
+        if isinstance(wc, list):
+            object.__setattr__(self, "width_candidates", tuple(wc))
+            wc = self.width_candidates
+        _check(isinstance(wc, tuple) and all(isinstance(c, str) and c for c in wc),
+               "width_candidates", wc, "a list of spec names or paths")
+        if wc and not cands:
+            raise ConfigError(f"invalid width_candidates = {list(wc)!r}: only a selection spec (with candidates) "
+                              "takes width_candidates.")
+        if set(wc) & set(cands) or len(set(wc)) != len(wc):
+            raise ConfigError(f"invalid width_candidates = {list(wc)!r}: a spec is listed twice (or is also one of "
+                              f"the candidates {list(cands)}).")
         if not isinstance(self.priors, Mapping):
             raise ConfigError(f"invalid priors = {self.priors!r}: expected a table {{param: {{dist = ...}}}}.")
         object.__setattr__(self, "priors", _validate_priors(dict(self.priors), self))
@@ -209,6 +245,21 @@ class ModelSpec:
         """True when m50 has a smooth 2-D spatial term."""
         return self.spatial in ("smooth", "depth+smooth")
 
+    @property
+    def uses_width_position(self) -> bool:
+        """True when log w has a field in the image coordinates ``(u, v)`` (``width_order > 0``)."""
+        return self.width_order > 0
+
+    @property
+    def uses_position(self) -> bool:
+        """True when f depends on the image coordinates ``(u, v)`` (smooth m50 or positional width)."""
+        return self.uses_smooth or self.uses_width_position
+
+    @property
+    def is_spatial(self) -> bool:
+        """True when f varies over the image at all (depth, smooth or positional-width terms)."""
+        return self.spatial != "none" or self.width_depth or self.uses_width_position
+
     def parameters(self) -> list[str]:
         """Prior keys of this model's parameters (smooth coefficients as ``"smooth"``)."""
         keys = ["m50_0", "log_w"]
@@ -220,6 +271,8 @@ class ModelSpec:
             keys.append("beta_depth")
         if self.width_depth:
             keys.append("w_depth")
+        if self.uses_width_position:
+            keys.append("w_uv")
         if self.size_covariate:
             keys.append("beta_size")
         if self.link == "richards":
@@ -238,6 +291,7 @@ class ModelSpec:
         """Plain-data view (JSON/TOML friendly)."""
         out = {f.name: getattr(self, f.name) for f in fields(self)}
         out["candidates"] = list(self.candidates)
+        out["width_candidates"] = list(self.width_candidates)
         out["priors"] = {k: dict(v) for k, v in self.priors.items()}
         return out
 
@@ -332,10 +386,15 @@ def spec_from_mapping(mapping: Mapping[str, Any], *, name: str | None = None, so
         if not isinstance(cands, list):
             raise ConfigError(f"invalid candidates = {cands!r}{where}: expected a list of spec names or paths.")
         data["candidates"] = tuple(cands)
-        model_keys = sorted(set(data) - {"name", "candidates", "description", "kind", "magnitude"})
+        model_keys = sorted(set(data) - {"name", "candidates", "width_candidates", "description", "kind", "magnitude"})
         if model_keys:
             raise ConfigError(f"a selection spec (with candidates) takes no model keys, got {model_keys}{where}; "
                               "put them in the candidate specs instead.")
+    if "width_candidates" in data:
+        wc = data["width_candidates"]
+        if not isinstance(wc, list):
+            raise ConfigError(f"invalid width_candidates = {wc!r}{where}: expected a list of spec names or paths.")
+        data["width_candidates"] = tuple(wc)
     if "name" not in data:
         if name is None:
             raise ConfigError(f"missing key 'name'{where}.")
@@ -388,21 +447,43 @@ def resolve_candidates(spec: ModelSpec | str) -> list[ModelSpec]:
     spec = load_spec(spec)
     if not spec.is_selection:
         raise ConfigError(f"model spec {spec.name!r} is not a selection spec (it has no candidates).")
+    return _resolve(spec, spec.candidates, "candidate")
+
+
+def resolve_width_candidates(spec: ModelSpec | str) -> list[ModelSpec]:
+    """The positional-width candidates of a selection spec (``width_candidates``), in order.
+
+    Raises
+    ------
+    ConfigError
+        As :func:`resolve_candidates`, and for a width candidate without a
+        positional width (``width_order = 0``).
+    """
+    spec = load_spec(spec)
+    out = _resolve(spec, spec.width_candidates, "width candidate") if spec.is_selection else []
+    for child in out:
+        if not child.uses_width_position:
+            raise ConfigError(f"width candidate {child.name!r} of selection spec {spec.name!r} has no positional "
+                              "width (width_order = 0); list specs with width_order = 1 or 2.")
+    return out
+
+
+def _resolve(spec: ModelSpec, names, what: str) -> list[ModelSpec]:
     base = Path(spec.source).parent if spec.source and Path(spec.source).is_file() else None
     out = []
-    for cand in spec.candidates:
+    for cand in names:
         target = cand
         if base is not None and (cand.endswith(".toml") or "/" in cand) and not Path(cand).is_absolute():
             target = str(base / cand)
         try:
             child = load_spec(target)
         except ConfigError as exc:
-            raise ConfigError(f"candidate {cand!r} of selection spec {spec.name!r}: {exc}") from None
+            raise ConfigError(f"{what} {cand!r} of selection spec {spec.name!r}: {exc}") from None
         if child.is_selection:
-            raise ConfigError(f"candidate {cand!r} of selection spec {spec.name!r} is itself a selection spec; "
+            raise ConfigError(f"{what} {cand!r} of selection spec {spec.name!r} is itself a selection spec; "
                               "list model specs only.")
         if child.kind != spec.kind:
-            raise ConfigError(f"candidate {cand!r} is a {child.kind} model but selection spec {spec.name!r} is "
+            raise ConfigError(f"{what} {cand!r} is a {child.kind} model but selection spec {spec.name!r} is "
                               f"for {spec.kind}.")
         out.append(child)
     return out

@@ -25,7 +25,17 @@ __all__ = ["models_dir", "list_spec_names", "read_spec_toml"]
 
 
 def models_dir(sub: str = ""):
-    """The folder of the shipped specifications (``sub``: a subfolder such as ``"counts"``)."""
+    """The folder of the shipped specifications (``sub``: a subfolder such as ``"counts"``).
+
+    When ``comest_bayes`` is imported from a source checkout (its parent folder holds
+    ``pyproject.toml`` and ``models/``), that checkout's ``models/``: the specs then always match
+    the code that reads them, also when a second checkout (a git worktree on ``PYTHONPATH``) is
+    imported while the editable install points at another.
+    """
+    checkout = Path(__file__).resolve().parents[2]
+    if (checkout / "pyproject.toml").is_file() and (checkout / "models" / "logistic.toml").is_file():
+        root = checkout / "models"
+        return root / sub if sub else root
     try:
         root = resources.files("comest_bayes.models")
     except ModuleNotFoundError:

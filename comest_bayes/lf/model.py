@@ -169,7 +169,7 @@ def build_inputs(mags, *, area_deg2: float, mag_range, transfer: PhotometricTran
 
 def _spatial(post) -> bool:
     """True when the completeness varies over the image (depth or smooth spatial term)."""
-    return post is not None and bool(post.spec.uses_depth or post.spec.uses_smooth)
+    return post is not None and bool(post.spec.uses_depth or post.spec.uses_position)
 
 
 def _positions_cov(post, x, y):
@@ -273,7 +273,7 @@ def _median_completeness(post, draws, inputs: LFInputs, *, chunk: int = 64):
     if inputs.x is None:  # no positions: every object sees the footprint average
         return fbar_med[None, :], fbar_med
     med = np.empty((inputs.n, grid.size))
-    if not post.spec.uses_smooth:  # depth only: f on DEPTH_NODES depths, linear in between (as the joint mode)
+    if not post.spec.uses_position:  # depth only: f on DEPTH_NODES depths, linear in between (as the joint mode)
 
         depth = post.covariates(np.zeros(inputs.n), inputs.x, inputs.y).depth
         nodes, idx, frac = _depth_nodes(depth)
@@ -376,7 +376,7 @@ class LFModel:
             self._per_object = per_object
             avg_objects = _spatial(post) and inputs.x is None
             # depth-only models: f at the objects from DEPTH_NODES depth nodes, linear in between
-            nodes = per_object and not post.spec.uses_smooth and bool(depth_nodes)
+            nodes = per_object and not post.spec.uses_position and bool(depth_nodes)
             if nodes:
 
                 obj_depth = post.covariates(np.zeros(inputs.n), inputs.x, inputs.y).depth

@@ -49,6 +49,36 @@ def test_auto_selection_prefers_the_depth_model_when_depth_varies():
     assert list(rows)[0] == "logistic" and list(rows)[-1] == "spline_depth"
     assert rows["logistic"]["delta_elpd"] < -50 and not rows["logistic"]["adequate"]
     assert rows["logistic_depth"]["adequate"] and rows["spline_depth"]["adequate"]
+    # the width does not vary over the image: the score test of the chosen rung does not escalate
+    assert entry.selection["width_test"]["escalated"] is False
+    assert entry.selection["width_test"]["p_value"] > 1e-3
+
+
+def test_a_selection_escalates_to_a_positional_width_when_the_width_varies_across_the_image(tmp_path):
+    # the depth-split truth, but the width grows from 0.1 mag (y = 0) to 0.35 mag (top), independent of
+    # depth; a selection spec with the logistic rungs of auto and its logistic width rung keeps the test fast
+    # (auto's spline rungs select the same way: the honesty benchmark, benchmarks/README.md)
+    n = 6000
+    table, noise_map = depth_split_outcomes(n, seed=21)
+    rng = np.random.default_rng(1021)  # not depth_split_outcomes' seed: its first draws are the positions
+    w = 0.1 + 0.25 * np.asarray(table["y"]) / (SHAPE[0] - 1)
+    mu = 24.0 - 2.5 * np.log10(np.asarray(table["noise"]))
+    table["detected"] = rng.random(n) < 0.98 / (1.0 + np.exp(-(mu - np.asarray(table["mag"])) / w))
+    spec = tmp_path / "auto_logistic.toml"
+    spec.write_text('name = "auto_logistic"\ncandidates = ["logistic", "logistic_depth"]\n'
+                    'width_candidates = ["logistic_depth_width_uv"]\n')
+    post, entry = fit_depth_split(table, noise_map, str(spec), min_ess=100)
+    test = entry.selection["width_test"]
+    assert test["escalated"] and test["p_value"] < 1e-6
+    # the escalated selection compares the first selection's choice with the positional-width rung, on
+    # cells that resolve position, and keeps the latter: the single width misses the image average
+    assert test["first_selection"]["chosen"] == "logistic_depth"
+    assert [row["name"] for row in entry.selection["table"]] == ["logistic_depth", "logistic_depth_width_uv"]
+    assert entry.name == "logistic_depth_width_uv"
+    # log w rises along v: from log 0.1 to log 0.35 over the image height, a plane slope of ~0.6 per unit
+    # v (the truth is linear in w, not in log w); 6000 injections give it to ~0.07
+    assert 0.4 < entry.parameters["w_01"]["median"] < 0.8
+    assert abs(entry.parameters["w_10"]["median"]) < 0.2
 
 
 def test_auto_selection_keeps_the_simple_model_on_uniform_depth():

@@ -11,8 +11,8 @@ from comest_bayes.bayes.spec import (DEFAULT_PRIORS, ModelSpec, list_specs, load
 from conftest import REPO_ROOT
 
 SHIPPED = ["auto", "auto_smooth", "logistic", "logistic_depth", "logistic_depth_size", "logistic_depth_smooth",
-           "logistic_smooth", "pritchet", "probit", "probit_depth", "purity", "richards_depth", "spline_depth",
-           "spline_depth_width"]
+           "logistic_depth_width_uv", "logistic_smooth", "pritchet", "probit", "probit_depth", "purity", "richards_depth", "spline_depth",
+           "spline_depth_width", "spline_depth_width_uv"]
 
 
 def test_list_specs_finds_every_shipped_file():
