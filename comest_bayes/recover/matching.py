@@ -345,10 +345,10 @@ def in_clean_zone(x, y, flux, cleaner_a, *, a_other: float, zone: float = CLEAN_
     cleaning (``detection.clean``) remove ``j``'s detection as a wing of
     ``i``'s.  ``a_other`` stands for ``j``'s own ``a`` and must not depend on
     whether ``j`` was detected (its outcome would then select it); the PSF's
-    sigma bounds the isophotal ``a`` of a faint source.  The test uses the
-    positions, the true fluxes and the *other* injections' detections only,
-    so dropping the injections it flags selects on nothing that ``j``'s own
-    detection depends on beyond its injected neighbours.
+    sigma bounds the isophotal ``a`` of a faint source.  The test looks at
+    the positions, the true fluxes and the *other* injections' detections
+    only, never at ``j``'s own outcome, so the injections it keeps are a
+    fair sample of injections without an injected bright neighbour.
 
     Parameters
     ----------
