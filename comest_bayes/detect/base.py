@@ -198,7 +198,7 @@ def given_noise(noise: np.ndarray, mask: np.ndarray) -> np.ndarray:
     noise = np.asarray(noise)
     if noise.shape != mask.shape:
         raise InputError(f"the given noise map has shape {noise.shape} but the image {mask.shape}; pass the "
-                         f"observed image's noise map (noise.fits of the same run).")
+                         f"observed detection's noise map of the same run.")
     out = np.array(noise, dtype=np.float32, order="C", copy=True)
     bad = mask | ~np.isfinite(out) | (out <= 0)
     if (bad & ~mask).any():
@@ -231,7 +231,7 @@ def given_background(background: np.ndarray, mask: np.ndarray) -> np.ndarray:
     background = np.asarray(background)
     if background.shape != mask.shape:
         raise InputError(f"the given background map has shape {background.shape} but the image {mask.shape}; "
-                         f"pass the observed image's background map (background.fits of the same run).")
+                         f"pass the observed detection's background map of the same run.")
     out = np.array(background, dtype=np.float32, order="C", copy=True)
     bad = ~np.isfinite(out)
     if (bad & ~mask).any():
