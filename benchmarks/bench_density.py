@@ -12,14 +12,22 @@ Usage::
                                        [--work DIR] [--out benchmarks/results/density.json]
 
 Each run goes to ``<work>/d<density>_n<nsims>[_<label>]`` and is resumed there when it exists.
-The 2026-11-25 figures (demo tile, ~24,400 point and ~25,000 galaxy injections per row) are in
-``results/density.json``.
+Every row also records the realizations' CPU per usable injection (robust to the machine's load,
+which is recorded too).  The figures (demo tile, ~24,400 point and ~25,000 galaxy injections per
+row; 2026-11-25 for the defaults and the switches of cleaning and photon noise, 2026-11-27 for
+``detection.noise_level = "observed"`` and ``matching.exclude_clean_zone``) are in
+``results/density.json``; the table is in ``benchmarks/README.md``.
+
+    python benchmarks/bench_density.py --set detection.noise_level=observed --label obs
+    python benchmarks/bench_density.py --set detection.noise_level=observed \
+        --set matching.exclude_clean_zone=true --label obs_zone
 """
 
 from __future__ import annotations
 
 import argparse
 import json
+import os
 import sys
 import tempfile
 import time
@@ -48,9 +56,13 @@ def m50s(run_dir: Path) -> dict:
     for kind, entry in summary["kinds"].items():
         model = entry.get("model") or {}
         m50 = model.get("m50") or {}
+        usable = (entry.get("counts") or {}).get("usable")
+        cpu = (entry.get("seconds") or {}).get("cpu")
         out[kind] = {"binned": entry.get("m50_binned"), "median": m50.get("median"), "lo68": m50.get("lo68"),
-                     "hi68": m50.get("hi68"), "model": model.get("name"),
-                     "injections": (entry.get("counts") or {}).get("usable")}
+                     "hi68": m50.get("hi68"), "model": model.get("name"), "injections": usable,
+                     "injected": (entry.get("counts") or {}).get("injected"), "realization_cpu": cpu,
+                     # CPU of the realizations (inject, detect, match) per usable injection: robust to load
+                     "cpu_ms_per_usable": round(1000.0 * cpu / usable, 3) if cpu and usable else None}
     return out
 
 
@@ -85,7 +97,9 @@ def main(argv=None) -> int:
         row = {"density": density, "nsims": nsims, "overrides": list(a.overrides), "run": str(out),
                "wall": round(time.perf_counter() - t0, 1), "kinds": m50s(out)}
         rows.append(row)
-        text = "; ".join(f"{k} {v['binned']:.3f} / {v['median']:.3f} [{v['lo68']:.3f}, {v['hi68']:.3f}]"
+        row["load"] = os.getloadavg()[0]
+        text = "; ".join(f"{k} {v['binned']:.3f} / {v['median']:.3f} [{v['lo68']:.3f}, {v['hi68']:.3f}] "
+                         f"({v['injections']} usable, {v['cpu_ms_per_usable']} CPU-ms each)"
                          for k, v in row["kinds"].items() if v["median"] is not None and v["binned"] is not None)
         print(f"density {density:g} x {nsims} realizations{' (' + ', '.join(a.overrides) + ')' if a.overrides else ''}: "
               f"m50 binned / posterior [68%]: {text} ({row['wall']:.0f} s)", flush=True)

@@ -39,6 +39,8 @@ __all__ = [
 ]
 
 NOISE_MODES = ("auto", "background", "global", "weight")
+#: Where the re-detection of an injected image takes its noise *level* (``detection.noise_level``).
+NOISE_LEVELS = ("per_image", "observed")
 BACKENDS = ("sep", "sextractor")
 
 
@@ -68,6 +70,27 @@ class DetectionConfig:
         NONE``); ``"weight"``: the user's weight map, rescaled to the measured
         background RMS (``MAP_WEIGHT``/``MAP_RMS``/``MAP_VAR``); ``"auto"``:
         ``weight`` when a weight map is given, else ``background``.
+    noise_level : {"per_image", "observed"}
+        Which image sets the level of that sigma when an *injected* image (and
+        the bare base image of the baseline detection) is re-detected.
+        ``"per_image"``: measured again on every image, as SExtractor would
+        (the ``background`` RMS map, or the weight map rescaled to the median
+        background RMS); the injected sources raise it, and with it the
+        threshold, more at higher injection densities.  ``"observed"``: the
+        first detection's noise map on the observed image is used as it is
+        (the weight map keeps the observed rescaling factor; the
+        ``background`` mode uses the observed RMS map), so every injected
+        image is thresholded at the observed image's noise.  The observed
+        image's own detection is the same either way.  See
+        ``docs/injection.md`` ("The injection density changes what is
+        measured").
+    background_level : {"per_image", "observed"}
+        The same choice for the background *level* subtracted before
+        thresholding: measured again on every injected image in meshes of
+        ``back_size`` (``"per_image"``, SExtractor's way; the injections'
+        light lifts it), or the observed image's background map
+        (``"observed"``; SEP backend only, since SExtractor always measures
+        its own).
     deblend_nthresh, deblend_mincont : int, float
         Deblending levels and minimum contrast.
     clean, clean_param : bool, float
@@ -93,6 +116,8 @@ class DetectionConfig:
     back_size: int = 64
     back_filtersize: int = 3
     noise: str = "auto"
+    noise_level: str = "per_image"
+    background_level: str = "per_image"
     deblend_nthresh: int = 32
     deblend_mincont: float = 0.005
     clean: bool = True
@@ -111,6 +136,15 @@ class DetectionConfig:
         _check(self.back_filtersize >= 1 and self.back_filtersize % 2 == 1,
                "detection.back_filtersize", self.back_filtersize, "an odd integer >= 1, e.g. 3")
         _check(self.noise in NOISE_MODES, "detection.noise", self.noise, f"one of {NOISE_MODES}")
+        _check(self.noise_level in NOISE_LEVELS, "detection.noise_level", self.noise_level,
+               f"one of {NOISE_LEVELS}: 'per_image' re-measures the noise on every injected image, 'observed' "
+               f"keeps the observed image's")
+        _check(self.background_level in NOISE_LEVELS, "detection.background_level", self.background_level,
+               f"one of {NOISE_LEVELS}: 'per_image' re-measures the background on every injected image, "
+               f"'observed' subtracts the observed image's")
+        _check(self.background_level == "per_image" or self.backend == "sep", "detection.background_level",
+               self.background_level, "'per_image' with detection.backend='sextractor', which always measures "
+               "its own background map (BACK_TYPE MANUAL takes one constant); use the SEP backend for 'observed'")
         _check(1 <= self.deblend_nthresh <= 64, "detection.deblend_nthresh", self.deblend_nthresh,
                "an integer from 1 to 64, e.g. 32")
         _check(0.0 <= self.deblend_mincont <= 1.0, "detection.deblend_mincont", self.deblend_mincont,
@@ -339,11 +373,20 @@ class MatchingConfig:
         Largest accepted ``|measured - true|`` magnitude difference (default 1.5).
     mag_column : str
         Detection-catalog magnitude compared with the truth (default mag_auto).
+    exclude_clean_zone : bool
+        Leave out of the usable injections (truth flag 8) every injection
+        lying within SExtractor's cleaning reach, ``10 x (a_i + sigma_PSF)``
+        pixels, of a detected injection ``i`` of larger true flux, so that no
+        counted injection can have been removed by the cleaning of another
+        injection's wings (``detection.clean``; without cleaning nothing is
+        left out).  See ``docs/injection.md`` ("The injection density changes
+        what is measured").
     """
 
     radius_fwhm: float = 1.0
     mag_tol: float = 1.5
     mag_column: str = "mag_auto"
+    exclude_clean_zone: bool = False
 
     def __post_init__(self):
         _check(self.radius_fwhm > 0, "matching.radius_fwhm", self.radius_fwhm, "a positive multiple of the FWHM")

@@ -260,3 +260,14 @@ def test_default_to_dict_round_trip():
     cfg = RunConfig()
     state = json.loads(json.dumps(cfg.to_dict()))
     assert load_config(overrides={k: v for k, v in state.items() if k != "seed"}, seed=state["seed"]) == cfg
+
+
+def test_noise_level_and_clean_zone_settings():
+    cfg = load_config(overrides=["detection.noise_level=observed", "matching.exclude_clean_zone=true"])
+    assert cfg.detection.noise_level == "observed" and cfg.matching.exclude_clean_zone is True
+    assert load_config().detection.noise_level == "per_image"
+    with pytest.raises(ConfigError, match=r"invalid detection\.noise_level = 'measured': expected one of "
+                                          r"\('per_image', 'observed'\)"):
+        load_config(overrides=["detection.noise_level=measured"])
+    with pytest.raises(ConfigError, match=r"invalid matching\.exclude_clean_zone = 'often'.*type bool"):
+        load_config(overrides=["matching.exclude_clean_zone=often"])

@@ -16,9 +16,9 @@ from pathlib import Path
 import numpy as np
 
 from comest_bayes.constants import FWHM_PER_SIGMA
-from comest_bayes.errors import ConfigError
+from comest_bayes.errors import ConfigError, InputError
 
-__all__ = ["DEFAULT_CONV", "DetectionResult", "filter_kernel", "noise_map"]
+__all__ = ["DEFAULT_CONV", "DetectionResult", "filter_kernel", "given_background", "given_noise", "noise_map"]
 
 #: SExtractor's ``default.conv``: 3x3 "all-ground" kernel with FWHM = 2 pixels.
 DEFAULT_CONV = np.array([[1, 2, 1], [2, 4, 2], [1, 2, 1]], dtype=np.float32)
@@ -169,3 +169,72 @@ def noise_map(mode: str, rms: np.ndarray, global_rms: float, weight_noise: np.nd
         fill = float(np.median(sample)) if sample.size else (float(np.median(out[~bad])) if (~bad).any() else 1.0)
         out[bad] = fill
     return out, mode
+
+
+def given_noise(noise: np.ndarray, mask: np.ndarray) -> np.ndarray:
+    """A noise map given as it is (``detection.noise_level = "observed"``), checked and made contiguous.
+
+    The threshold of an injected image is then relative to the observed image's
+    noise map rather than to one measured again on the injected image.  Masked
+    pixels get the median of the others, as :func:`noise_map` does.
+
+    Parameters
+    ----------
+    noise : ndarray, shape (ny, nx)
+        1-sigma noise per pixel (image units); never modified.
+    mask : ndarray of bool, shape (ny, nx)
+        True on bad pixels.
+
+    Returns
+    -------
+    ndarray of float32, shape (ny, nx)
+
+    Raises
+    ------
+    InputError
+        A map of another shape, or one that is not finite and positive on
+        every unmasked pixel.
+    """
+    noise = np.asarray(noise)
+    if noise.shape != mask.shape:
+        raise InputError(f"the given noise map has shape {noise.shape} but the image {mask.shape}; pass the "
+                         f"observed detection's noise map of the same run.")
+    out = np.array(noise, dtype=np.float32, order="C", copy=True)
+    bad = mask | ~np.isfinite(out) | (out <= 0)
+    if (bad & ~mask).any():
+        raise InputError(f"the given noise map is not finite and positive on {int((bad & ~mask).sum())} "
+                         f"unmasked pixels; it must be a noise sigma wherever the image is used.")
+    if bad.any():
+        out[bad] = float(np.median(out[~bad])) if (~bad).any() else 1.0
+    return out
+
+
+def given_background(background: np.ndarray, mask: np.ndarray) -> np.ndarray:
+    """A background level map given as it is (``detection.background_level = "observed"``).
+
+    Parameters
+    ----------
+    background : ndarray, shape (ny, nx)
+        Background level per pixel (image units); never modified.
+    mask : ndarray of bool, shape (ny, nx)
+        True on bad pixels; they get 0 (the detection zeroes them anyway).
+
+    Returns
+    -------
+    ndarray of float32, shape (ny, nx)
+
+    Raises
+    ------
+    InputError
+        A map of another shape, or one not finite on every unmasked pixel.
+    """
+    background = np.asarray(background)
+    if background.shape != mask.shape:
+        raise InputError(f"the given background map has shape {background.shape} but the image {mask.shape}; "
+                         f"pass the observed detection's background map of the same run.")
+    out = np.array(background, dtype=np.float32, order="C", copy=True)
+    bad = ~np.isfinite(out)
+    if (bad & ~mask).any():
+        raise InputError(f"the given background map is not finite on {int((bad & ~mask).sum())} unmasked pixels.")
+    out[mask] = 0.0
+    return out

@@ -13,7 +13,7 @@ import sep
 
 from comest_bayes.detect.catalog import (FLAG_APER_TRUNC, FLAG_BLENDED, FLAG_DEBLEND_OVERFLOW, FLAG_EDGE, FLAG_MASKED, FLAG_SATURATED, derived_columns, make_catalog)
 from comest_bayes.config import DetectionConfig
-from comest_bayes.detect.base import DEFAULT_CONV, DetectionResult, filter_kernel, noise_map
+from comest_bayes.detect.base import DEFAULT_CONV, DetectionResult, filter_kernel, given_background, given_noise, noise_map
 from comest_bayes.errors import ConfigError, DetectionOverflowError, InputError
 from comest_bayes.detect.sextractor import detect_sextractor
 
@@ -61,7 +61,8 @@ def _extract(data_sub, noise, mask, config: DetectionConfig, kernel, segmentatio
 def detect_array(data: np.ndarray, *, mask: np.ndarray | None = None, weight_noise: np.ndarray | None = None,
                  zeropoint: float, gain: float | None = None, saturation: float | None = None, wcs=None,
                  config: DetectionConfig = DetectionConfig(), segmentation: bool = True, inplace: bool = False,
-                 check_finite: bool = True) -> DetectionResult:
+                 check_finite: bool = True, threshold_noise: np.ndarray | None = None,
+                 threshold_background: np.ndarray | None = None) -> DetectionResult:
     """Detect and measure sources on an image array.
 
     Parameters
@@ -97,6 +98,20 @@ def detect_array(data: np.ndarray, *, mask: np.ndarray | None = None, weight_noi
         Check that unmasked pixels are finite (default).  Pass False only when
         the caller has checked (e.g. once on the base image of many
         realizations).
+    threshold_noise : ndarray, shape (ny, nx), optional
+        The per-pixel sigma of the threshold and of the flux errors, used as
+        given instead of one derived from this image (``detection.noise`` is
+        then not applied and ``weight_noise`` is ignored): the observed image's
+        noise map when injected images are re-detected with
+        ``detection.noise_level = "observed"``.  Must be finite and positive
+        on unmasked pixels; masked pixels are filled with the median.  The
+        background *level* is still measured on ``data`` unless
+        ``threshold_background`` is given too.
+    threshold_background : ndarray, shape (ny, nx), optional
+        The background level map subtracted, used as given instead of one
+        measured on ``data`` (``detection.background_level = "observed"``:
+        the observed image's).  With both given maps no background mesh is
+        measured at all and ``DetectionResult.rms`` is the given noise.
 
     Returns
     -------
@@ -126,11 +141,22 @@ def detect_array(data: np.ndarray, *, mask: np.ndarray | None = None, weight_noi
         else:
             data = np.where(mask, np.float32(0.0), data)
 
-    bkg = sep.Background(data, mask=mask, bw=config.back_size, bh=config.back_size,
-                         fw=config.back_filtersize, fh=config.back_filtersize)
-    back = bkg.back(dtype=np.float32)
-    rms = bkg.rms(dtype=np.float32)
-    noise, mode = noise_map(config.noise, rms, float(bkg.globalrms), weight_noise, mask, copy=not inplace)
+    if threshold_background is not None and threshold_noise is not None:
+        # both maps given (the observed image's): nothing is measured on this image
+        back = given_background(threshold_background, mask)
+        noise, mode = given_noise(threshold_noise, mask), "given"
+        rms = noise
+        globback, globrms = float(np.median(back)), float(np.median(noise))
+    else:
+        bkg = sep.Background(data, mask=mask, bw=config.back_size, bh=config.back_size,
+                             fw=config.back_filtersize, fh=config.back_filtersize)
+        back = bkg.back(dtype=np.float32) if threshold_background is None else given_background(threshold_background, mask)
+        rms = bkg.rms(dtype=np.float32)
+        globback, globrms = float(bkg.globalback), float(bkg.globalrms)
+        if threshold_noise is None:
+            noise, mode = noise_map(config.noise, rms, globrms, weight_noise, mask, copy=not inplace)
+        else:
+            noise, mode = given_noise(threshold_noise, mask), "given"
     if inplace:
         data_sub = np.subtract(data, back, out=data)
     else:
@@ -149,7 +175,7 @@ def detect_array(data: np.ndarray, *, mask: np.ndarray | None = None, weight_noi
                       zeropoint=zeropoint, gain=gain, saturation=saturation, wcs=wcs)
     meta = {
         "BACKEND": "sep", "SEPVER": sep.__version__, "ZEROPT": zeropoint, "THRESH": config.thresh,
-        "NOISEMOD": mode, "GLOBBACK": float(bkg.globalback), "GLOBRMS": float(bkg.globalrms),
+        "NOISEMOD": mode, "GLOBBACK": globback, "GLOBRMS": globrms,
         "PIXSTACK": int(limits[0]), "SUBOBJ": int(limits[1]), "BACKSIZE": config.back_size,
         "BACKFILT": config.back_filtersize,
     }
@@ -227,6 +253,7 @@ def measure(data_sub, objs, *, noise, mask, back, config: DetectionConfig, zerop
 
 def detect_with_backend(data: np.ndarray, *, config: DetectionConfig = DetectionConfig(), workdir=None,
                         segmentation: bool = True, inplace: bool = False, check_finite: bool = True,
+                        threshold_noise: np.ndarray | None = None, threshold_background: np.ndarray | None = None,
                         **kwargs) -> DetectionResult:
     """:func:`detect_array` or the SExtractor binary, as ``config.backend`` says (same arguments).
 
@@ -235,13 +262,18 @@ def detect_with_backend(data: np.ndarray, *, config: DetectionConfig = Detection
     ``inplace`` and ``check_finite`` are SEP's fast-path options (see
     :func:`detect_array`); the SExtractor backend ignores them: it reads the
     image from a file it writes, never modifies ``data``, and always returns
-    its segmentation map.
+    its segmentation map.  ``threshold_noise`` and ``threshold_background``
+    (fixed noise and background maps, e.g. the observed image's under
+    ``detection.noise_level`` / ``detection.background_level = "observed"``)
+    are used by both backends.
     """
     if config.backend == "sextractor":
 
-        return detect_sextractor(data, workdir=workdir, config=config, **kwargs)
+        return detect_sextractor(data, workdir=workdir, config=config, threshold_noise=threshold_noise,
+                                 threshold_background=threshold_background, **kwargs)
     return detect_array(data, config=config, segmentation=segmentation, inplace=inplace,
-                        check_finite=check_finite, **kwargs)
+                        check_finite=check_finite, threshold_noise=threshold_noise,
+                        threshold_background=threshold_background, **kwargs)
 
 
 def detect(image, config: DetectionConfig = DetectionConfig(), workdir=None) -> DetectionResult:

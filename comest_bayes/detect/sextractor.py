@@ -23,7 +23,7 @@ from astropy.io import fits
 
 from comest_bayes.detect.catalog import FLAG_MASKED, derived_columns, make_catalog
 from comest_bayes.config import DetectionConfig
-from comest_bayes.detect.base import DetectionResult, filter_kernel, noise_map
+from comest_bayes.detect.base import DetectionResult, filter_kernel, given_noise, noise_map
 from comest_bayes.errors import BackendUnavailableError, ComestError, ConfigError, DetectionOverflowError, InputError
 
 __all__ = ["SExtractorError", "ENV_VAR", "find_sextractor", "sextractor_version", "sextractor_config",
@@ -304,7 +304,9 @@ def _column(table: dict, name: str, n: int, width: int | None = None) -> np.ndar
 def detect_sextractor(data: np.ndarray, *, mask: np.ndarray | None = None,
                       weight_noise: np.ndarray | None = None, zeropoint: float, gain: float | None = None,
                       saturation: float | None = None, wcs=None, config: DetectionConfig = DetectionConfig(),
-                      workdir: str | os.PathLike | None = None) -> DetectionResult:
+                      workdir: str | os.PathLike | None = None,
+                      threshold_noise: np.ndarray | None = None,
+                      threshold_background: np.ndarray | None = None) -> DetectionResult:
     """Detect and measure sources with the SExtractor binary.
 
     Same semantics as :func:`comest_bayes.detect.sep_backend.detect_array`.
@@ -333,6 +335,18 @@ def detect_sextractor(data: np.ndarray, *, mask: np.ndarray | None = None,
     workdir : path-like, optional
         Directory under which the private temporary directory is made
         (created if missing); the system's temporary directory by default.
+    threshold_noise : ndarray, shape (ny, nx), optional
+        A noise sigma map used as it is (``detection.noise_level =
+        "observed"``): SExtractor is given it as a ``MAP_RMS`` weight image,
+        whose values it takes in absolute units with ``RESCALE_WEIGHTS N``, so
+        neither the weight map's rescaling pass nor the background RMS of this
+        image enters the threshold (``detection.noise`` and ``weight_noise``
+        are then not used).  The background level is still measured here.
+    threshold_background : None
+        Not supported: SExtractor always measures its own background map
+        (``BACK_TYPE MANUAL`` takes one constant, not a map), so
+        ``detection.background_level = "observed"`` needs the SEP backend;
+        anything but None raises :class:`~comest_bayes.errors.ConfigError`.
 
     Returns
     -------
@@ -355,6 +369,9 @@ def detect_sextractor(data: np.ndarray, *, mask: np.ndarray | None = None,
         SExtractor's pixel or object stack overflowed even after one retry
         with larger stacks.
     """
+    if threshold_background is not None:
+        raise ConfigError("detection.background_level='observed' needs detection.backend='sep': SExtractor "
+                          "measures its own background map (BACK_TYPE MANUAL takes one constant, not a map).")
     binary = find_sextractor()
     data = np.asarray(data)
     if data.ndim != 2:
@@ -371,8 +388,13 @@ def detect_sextractor(data: np.ndarray, *, mask: np.ndarray | None = None,
         if weight_noise.shape != shape:
             raise InputError(f"the weight noise map has shape {weight_noise.shape} but the image has shape "
                              f"{shape}; give a map of the image's shape.")
-    mode = sextractor_noise_mode(config.noise, weight_noise is not None)
-    if mode == "weight":
+    given = None
+    if threshold_noise is not None:
+        given = given_noise(threshold_noise, mask)
+        mode = "weight"  # SExtractor reads the given map as MAP_RMS, like a rescaled weight map
+    else:
+        mode = sextractor_noise_mode(config.noise, weight_noise is not None)
+    if mode == "weight" and given is None:
         mask = mask | ~np.isfinite(weight_noise) | (weight_noise <= 0)
     if mask.all():
         raise InputError("every pixel of the image is masked; nothing can be detected.")
@@ -402,7 +424,11 @@ def detect_sextractor(data: np.ndarray, *, mask: np.ndarray | None = None,
             _write_conv(kernel, tmp / "detection.conv")
             files["FILTER_NAME"] = "detection.conv"
         noise = None
-        if mode == "weight":
+        if given is not None:
+            noise = given
+            _write_fits(tmp / "weight.fits", np.where(mask, MASKED_RMS, noise))
+            files["WEIGHT_IMAGE"] = "weight.fits"
+        elif mode == "weight":
             # Pass 1, no detection: SExtractor's background-RMS map, to which the weight map is scaled.
             keys = sextractor_config(config, zeropoint=zeropoint, gain=gain, saturation=saturation,
                                      noise_mode="global") | files | {
@@ -461,8 +487,8 @@ def detect_sextractor(data: np.ndarray, *, mask: np.ndarray | None = None,
     version = report.get("version") or sextractor_version(binary)
     meta = {
         "BACKEND": "sextractor", "SEXVER": version, "ZEROPT": zeropoint, "THRESH": config.thresh,
-        "NOISEMOD": mode, "GLOBBACK": globback, "GLOBRMS": globrms, "PIXSTACK": int(pixstack),
-        "OBJSTACK": int(objstack), "BACKSIZE": config.back_size, "BACKFILT": config.back_filtersize,
+        "NOISEMOD": "given" if given is not None else mode, "GLOBBACK": globback, "GLOBRMS": globrms,
+        "PIXSTACK": int(pixstack), "OBJSTACK": int(objstack), "BACKSIZE": config.back_size, "BACKFILT": config.back_filtersize,
     }
     catalog = make_catalog(columns, naper, meta=meta)
     return DetectionResult(catalog=catalog, segmentation=seg, background=back, rms=rms, noise=noise,

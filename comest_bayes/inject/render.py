@@ -28,7 +28,7 @@ from comest_bayes.inject.psfmodel import make_psf, psf_half_light_radius_pix
 from comest_bayes.inject.profiles import sersic_radius_per_hlr, source_profile
 from comest_bayes.seeding import rng_for
 
-__all__ = ["TRUTH_COLUMNS", "FLAG_MASKED", "FLAG_OFF_IMAGE", "FLAG_DRAW_ERROR", "MAX_FFT_SIZE",
+__all__ = ["TRUTH_COLUMNS", "FLAG_MASKED", "FLAG_OFF_IMAGE", "FLAG_DRAW_ERROR", "FLAG_CLEAN_ZONE", "MAX_FFT_SIZE",
            "make_truth", "render_truth", "SIZED_KINDS", "SEPARATION_HLR", "STAMP_FLUX_FRACTION",
            "separation_radius_pix", "stamp_half_pix", "radius_per_hlr", "psf_radius_pix", "placement_capacity", "sizing_rule", "local_jacobians", "psf_enclosed_radius_pix", "point_stamp_size", "StampRenderer",
            "KGrid", "fft_size", "MAX_PSF_RADIUS_PIX", "BATCH_CHUNK_ELEMENTS"]
@@ -36,6 +36,8 @@ __all__ = ["TRUTH_COLUMNS", "FLAG_MASKED", "FLAG_OFF_IMAGE", "FLAG_DRAW_ERROR", 
 FLAG_MASKED = 1
 FLAG_OFF_IMAGE = 2
 FLAG_DRAW_ERROR = 4
+#: Set after detection (``matching.exclude_clean_zone``): within the cleaning reach of a brighter detected injection.
+FLAG_CLEAN_ZONE = 8
 
 #: Largest FFT (pixels on a side) used for one stamp; larger sources get flag 4.
 MAX_FFT_SIZE = 4096
@@ -80,7 +82,8 @@ TRUTH_COLUMNS = {
     "sersic_n": ("f8", None, "Sersic index (sersic, observed), else NaN"),
     "cosmos_index": ("i8", None, "COSMOS catalog row (cosmos), else -1"),
     "masked": ("?", None, "centre on a masked pixel: excluded from the ratios"),
-    "flag": ("i8", None, "bits: 1 centre masked, 2 stamp (partly) off the image, 4 drawing failed"),
+    "flag": ("i8", None, "bits: 1 centre masked, 2 stamp (partly) off the image, 4 drawing failed, 8 within the clean "
+                             "zone of a brighter detected injection (matching.exclude_clean_zone)"),
 }
 _LOCAL_NOISE = ("f8", None, "noise sigma at the centre pixel, image units")
 

@@ -471,13 +471,17 @@ def _injection_stages(run: RunDirectory, image: ImageData, det: DetectionResult,
     if not run.stage_done("baseline"):
         t0 = time.perf_counter()
         base = fits.getdata(run.file(base_name)).astype(np.float32)
-        weight_noise = det.noise if det.meta.get("noisemod") == "weight" else None
-        bdet = _observed_baseline(image, det, base, weight_noise, inj.on)
+        fixed = config.detection.noise_level == "observed"  # the injected images' threshold noise, as observed
+        weight_noise = det.noise if det.meta.get("noisemod") == "weight" and not fixed else None
+        bdet = _observed_baseline(image, det, base, weight_noise, inj.on, fixed=fixed) \
+            if config.detection.background_level == "per_image" else None
         reused = bdet is not None
         if not reused:
+            observed_back = config.detection.background_level == "observed"
             bdet = detect_with_backend(base, mask=image.mask, weight_noise=weight_noise, zeropoint=image.zeropoint,
                                        gain=image.gain, saturation=image.saturation, wcs=image.wcs,
-                                       config=config.detection)
+                                       config=config.detection, threshold_noise=det.noise if fixed else None,
+                                       threshold_background=det.background if observed_back else None)
         files = [run.write_table(layout.BASELINE, set_image_units(bdet.catalog, image.bunit)),
                  run.write_image(layout.MASK, image.mask.astype(np.uint8), header)]
         mag_range = tuple(inj.mag_range) if inj.mag_range else _auto_mag_range(image, det, _psf_nea(config, image, psf_choice))
@@ -498,7 +502,8 @@ def _injection_stages(run: RunDirectory, image: ImageData, det: DetectionResult,
         matching=config.matching, root_seed=config.seed,
         image_dir=str(run.file(layout.SIMS_DIR)) if inj.write_images else None,
         psf_beta=float(psf_choice.get("beta") or 0.0),
-        psf_pixel_integrated=bool(psf_choice.get("pixel_integrated", False)))
+        psf_pixel_integrated=bool(psf_choice.get("pixel_integrated", False)),
+        background_path=str(run.file(layout.BACKGROUND)))
     ctx = _contexts_by_kind(ctx, run.state.get("injection_density") or {})
 
     sims = run.file(layout.SIMS_DIR)
@@ -607,19 +612,23 @@ def _injection_stages(run: RunDirectory, image: ImageData, det: DetectionResult,
     return summary
 
 
-def _observed_baseline(image: ImageData, det: DetectionResult, base: np.ndarray, weight_noise, on: str):
+def _observed_baseline(image: ImageData, det: DetectionResult, base: np.ndarray, weight_noise, on: str,
+                       fixed: bool = False):
     """The first detection, when the baseline detection on the observed image would only repeat it.
 
     Injecting on the observed image (``injection.on = "observed"``), the baseline's input is the
     image the first detection ran on: the same pixels (``observed.fits``, written from them), mask,
     zero point, gain, saturation, WCS and detection settings.  When its noise map is the same too
-    (the weight map's noise, or none for both), the detection is deterministic and gives the same
+    (the weight map's noise, or none for both; or, ``fixed``, the first detection's own noise map,
+    ``detection.noise_level = "observed"``), the detection is deterministic and gives the same
     catalog, so it is reused (about 11 s on the shared 2MASS field).  Anything else: None (detect).
     """
     if on != "observed" or base.shape != image.data.shape:
         return None
     if not np.array_equal(base, image.data, equal_nan=True):
         return None
+    if fixed:  # the threshold noise given is the first detection's, measured on these same pixels
+        return det
     first = getattr(image, "noise", None)  # the noise map the first detection was given
     if (weight_noise is None) != (first is None):
         return None

@@ -15,7 +15,12 @@ from scipy.spatial import cKDTree
 
 from comest_bayes.errors import InputError
 
-__all__ = ["MatchResult", "DetectionClasses", "match_one_to_one", "classify_detections"]
+__all__ = ["MatchResult", "DetectionClasses", "match_one_to_one", "classify_detections", "in_clean_zone", "CLEAN_ZONE"]
+
+#: SExtractor's and SEP's ``CLEAN_ZONE``: cleaning compares two objects only when they lie closer than
+#: ``CLEAN_ZONE x (a1 + a2)``, ``a`` the isophotal RMS semi-major axes (SEP ``extract.h``; SExtractor
+#: ``define.h``).  Beyond that distance no object can remove another, whatever their fluxes.
+CLEAN_ZONE = 10.0
 
 
 @dataclass(frozen=True)
@@ -328,3 +333,58 @@ def classify_detections(det_x, det_y, matched_mask, *, kept_x=None, kept_y=None,
     kept = ~matched & coincident
     false = ~matched & ~coincident
     return DetectionClasses(matched=matched.copy(), coincident=coincident, kept=kept, false=false)
+
+
+def in_clean_zone(x, y, flux, cleaner_a, *, a_other: float, zone: float = CLEAN_ZONE) -> np.ndarray:
+    """Injections that a brighter detected injection of the same image could have cleaned.
+
+    Injection ``j`` is in the clean zone when some injection ``i`` with a larger
+    true flux was detected (``cleaner_a[i]`` finite: the RMS semi-major axis
+    ``a`` of its detection, pixels) and lies closer than
+    ``zone x (cleaner_a[i] + a_other)``: only then can SExtractor's or SEP's
+    cleaning (``detection.clean``) remove ``j``'s detection as a wing of
+    ``i``'s.  ``a_other`` stands for ``j``'s own ``a`` and must not depend on
+    whether ``j`` was detected (its outcome would then select it); the PSF's
+    sigma bounds the isophotal ``a`` of a faint source.  The test looks at
+    the positions, the true fluxes and the *other* injections' detections
+    only, never at ``j``'s own outcome, so the injections it keeps are a
+    fair sample of injections without an injected bright neighbour.
+
+    Parameters
+    ----------
+    x, y : array_like, shape (n,)
+        True positions of the injections, pixels.
+    flux : array_like, shape (n,)
+        True fluxes (any unit: only their order is used).
+    cleaner_a : array_like, shape (n,)
+        ``a`` of each injection's detection in pixels, NaN when it was not detected.
+    a_other : float
+        The ``a`` assumed for the injection that may be cleaned, pixels (>= 0).
+    zone : float
+        The zone in units of ``a1 + a2`` (default :data:`CLEAN_ZONE`).
+
+    Returns
+    -------
+    ndarray of bool, shape (n,)
+    """
+    x = _as_1d("x", x)
+    n = x.size
+    y, flux, a = _as_1d("y", y, n), _as_1d("flux", flux, n), _as_1d("cleaner_a", cleaner_a, n)
+    if not (np.isfinite(a_other) and a_other >= 0 and np.isfinite(zone) and zone > 0):
+        raise InputError(f"a_other must be >= 0 and zone > 0 pixels, got {a_other!r} and {zone!r}.")
+    out = np.zeros(n, dtype=bool)
+    cleaners = np.flatnonzero(np.isfinite(a) & (a >= 0))
+    if n == 0 or cleaners.size == 0:
+        return out
+    reach = zone * (a[cleaners] + a_other)
+    tree = cKDTree(np.column_stack([x, y]))
+    for k, near in enumerate(tree.query_ball_point(np.column_stack([x[cleaners], y[cleaners]]), reach)):
+        if not near:
+            continue
+        i = cleaners[k]
+        j = np.asarray(near, dtype=np.int64)
+        j = j[(j != i) & (flux[j] < flux[i])]
+        # query_ball_point keeps distances <= r; cleaning needs strictly less
+        close = np.hypot(x[j] - x[i], y[j] - y[i]) < reach[k]
+        out[j[close]] = True
+    return out

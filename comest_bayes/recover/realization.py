@@ -22,13 +22,14 @@ from astropy.wcs import WCS
 
 from comest_bayes.config import DetectionConfig, InjectionConfig, MatchingConfig
 from comest_bayes.errors import InputError
-from comest_bayes.recover.matching import classify_detections, match_one_to_one
+from comest_bayes.constants import FWHM_PER_SIGMA
+from comest_bayes.recover.matching import classify_detections, in_clean_zone, match_one_to_one
 from comest_bayes.seeding import Stream, int_seed_for, rng_for
 from comest_bayes.io import layout
 from comest_bayes.inject.psfmodel import make_psf
 from comest_bayes.inject.cosmos import load_cosmos
 from comest_bayes.detect.sep_backend import detect_with_backend
-from comest_bayes.inject.render import make_truth, render_truth
+from comest_bayes.inject.render import FLAG_CLEAN_ZONE, make_truth, render_truth
 from comest_bayes.inject.design import MagnitudeDesign
 from comest_bayes.io.rundir import atomic_path
 
@@ -88,6 +89,8 @@ class SimContext:
     psf_beta: float = 0.0
     #: The analytic PSF is convolved with the pixel (its FWHM and beta were fitted pixel-integrated).
     psf_pixel_integrated: bool = False
+    #: The observed detection's background map (``detection.background_level = "observed"``).
+    background_path: str = ""
 
     @property
     def wcs(self):
@@ -187,11 +190,31 @@ def _detect(image, mask, noise, ctx: SimContext):
     is built, and the finiteness check was made once on the base image
     (:func:`_arrays_cached`).  The catalog is the same as
     :func:`~comest_bayes.detect.sep_backend.detect_array`'s default path gives.
+    ``detection.background_level = "observed"`` subtracts the observed
+    detection's background map (``ctx.background_path``) instead of one
+    measured on ``image``.  ``noise`` is the observed detection's noise map: with
+    ``detection.noise_level = "observed"`` it is the threshold's sigma as it
+    is; with ``"per_image"`` it is the weight-map shape rescaled again to this
+    image's background RMS (weight mode) or unused (the RMS of this image).
     """
-
-    return detect_with_backend(image, mask=mask, weight_noise=noise if ctx.noise_mode == "weight" else None,
+    fixed = ctx.detection.noise_level == "observed"
+    background = None
+    if ctx.detection.background_level == "observed":
+        background = _background(ctx.background_path)
+    return detect_with_backend(image, mask=mask,
+                               weight_noise=noise if ctx.noise_mode == "weight" and not fixed else None,
+                               threshold_noise=noise if fixed else None, threshold_background=background,
                                zeropoint=ctx.zeropoint, gain=ctx.gain, saturation=ctx.saturation, wcs=ctx.wcs,
                                config=ctx.detection, segmentation=False, inplace=True, check_finite=False)
+
+
+def _background(path: str) -> np.ndarray:
+    return _background_cached(_file_key(path))
+
+
+@functools.lru_cache(maxsize=1)
+def _background_cached(key: tuple) -> np.ndarray:
+    return fits.getdata(key[0]).astype(np.float32)
 
 
 def run_realization(task: RealizationTask) -> RealizationResult:
@@ -268,7 +291,8 @@ def match_realization(truth: Table, catalog: Table, baseline: Table, noise: np.n
     dx, dy = np.asarray(catalog["xwin"], float), np.asarray(catalog["ywin"], float)
     cls = classify_detections(dx, dy, res.det_matched, kept_x=np.asarray(baseline["xwin"], float),
                               kept_y=np.asarray(baseline["ywin"], float), radius=radius)
-    usable = ~np.asarray(truth["masked"], bool) & (np.asarray(truth["flag"]) == 0)
+    flag = np.asarray(truth["flag"], dtype=np.int64)
+    usable = ~np.asarray(truth["masked"], bool) & (flag == 0)
     # Light of an unusable injection (centre masked, stamp cut by the border) can still be detected,
     # with a magnitude spoiled by the mask; such detections are neither real false detections nor
     # countable matches, so they are left out of purity like pre-existing sources.
@@ -277,6 +301,16 @@ def match_realization(truth: Table, catalog: Table, baseline: Table, noise: np.n
     n = len(truth)
     out = truth.copy(copy_data=False)
     out.meta = {}  # per-realization facts (placement, timings) are not catalog columns
+    if ctx.matching.exclude_clean_zone and ctx.detection.clean and n:
+        # after the classes above: the injections left out here are real injections whose light and
+        # detections are counted as before; only their outcome is not (docs/injection.md)
+        cleaner_a = np.full(n, np.nan)
+        cleaner_a[res.truth_index] = np.asarray(catalog["a"], float)[res.det_index]
+        zone = in_clean_zone(np.asarray(truth["x"], float), np.asarray(truth["y"], float),
+                             np.asarray(truth["flux"], float), cleaner_a, a_other=ctx.fwhm / FWHM_PER_SIGMA)
+        out["flag"] = np.where(zone, flag | FLAG_CLEAN_ZONE, flag)
+        out["flag"].description = truth["flag"].description
+        usable = usable & ~zone
     out["usable"] = usable
     out["detected"] = res.det_of_truth >= 0
     sep = np.full(n, np.nan)

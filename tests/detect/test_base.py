@@ -112,3 +112,33 @@ def test_noise_map_global_and_background_modes():
     out, _ = noise_map("background", rms, 3.5, None, mask, copy=False)
     assert out is rms and out[1, 1] == pytest.approx(np.median(np.delete(np.arange(1.0, 17.0), 5)))
 
+
+
+# --------------------------------------------------------------------------- a given noise map
+
+
+def test_given_noise_is_used_as_it_is_with_masked_pixels_filled():
+    from comest_bayes.detect.base import given_noise
+
+    noise = np.arange(1, 17, dtype=np.float64).reshape(4, 4)
+    mask = np.zeros((4, 4), bool)
+    mask[0, :2] = True
+    noise[0, 0] = np.nan  # anything may lie under the mask
+    out = given_noise(noise, mask)
+    assert out.dtype == np.float32 and out.flags.c_contiguous
+    np.testing.assert_array_equal(out[~mask], noise[~mask].astype(np.float32))
+    np.testing.assert_array_equal(out[mask], np.float32(np.median(noise[~mask])))
+    assert np.isnan(noise[0, 0])  # the input is never modified
+
+
+def test_given_noise_refuses_a_map_of_another_shape_or_bad_unmasked_values():
+    from comest_bayes.detect.base import given_noise
+    from comest_bayes.errors import InputError
+
+    mask = np.zeros((4, 4), bool)
+    with pytest.raises(InputError, match=r"shape \(3, 4\) but the image \(4, 4\)"):
+        given_noise(np.ones((3, 4)), mask)
+    bad = np.ones((4, 4))
+    bad[2, 1] = 0.0
+    with pytest.raises(InputError, match=r"not finite and positive on 1 unmasked pixels"):
+        given_noise(bad, mask)

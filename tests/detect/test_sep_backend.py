@@ -621,3 +621,53 @@ def test_sextractor_backend_accepts_the_fast_path_options(tmp_path):
     ref = detect_with_backend(data, mask=mask, zeropoint=ZP, config=config, workdir=tmp_path)
     assert fast.meta["backend"] == "sextractor" and len(fast.catalog) == len(ref.catalog) > 100
     np.testing.assert_array_equal(np.asarray(fast.catalog["flux_auto"]), np.asarray(ref.catalog["flux_auto"]))
+
+
+def test_a_given_noise_map_is_the_threshold_sigma_whatever_the_image_holds(two_noise_image):
+    # detection.noise_level = "observed": an injected image is thresholded at the observed noise map.
+    # Adding bright sources raises the image's measured RMS, but the noise the threshold (and the
+    # catalog's noise column) uses stays the given map exactly.
+    data, sigma, xs, ys = two_noise_image
+    crowded = data + render_point_sources(data.shape, xs + 20.0, ys + 25.0, np.full(8, 3.0e5), fwhm=6.0)
+    config = DetectionConfig(thresh=1.0, back_size=32)
+    per_image = detect_array(crowded, weight_noise=sigma, zeropoint=ZP, config=config)
+    base = detect_array(data, weight_noise=sigma, zeropoint=ZP, config=config)
+    # premise: the level moved (observed +0.8%; the weight map is rescaled to the higher measured RMS)
+    assert np.median(per_image.noise) > 1.005 * np.median(base.noise)
+    given = detect_array(crowded, weight_noise=sigma, threshold_noise=base.noise, zeropoint=ZP, config=config)
+    assert given.meta["noisemod"] == "given"
+    np.testing.assert_array_equal(given.noise, base.noise)
+    assert np.all(np.isin(np.asarray(given.catalog["noise"], np.float32), np.unique(base.noise)))
+    # the same map given to the fast path (in place, no segmentation) gives the same catalog
+    fast = detect_array(crowded.copy(), threshold_noise=base.noise, zeropoint=ZP, config=config, inplace=True,
+                        segmentation=False)
+    np.testing.assert_array_equal(np.asarray(fast.catalog["flux_auto"]), np.asarray(given.catalog["flux_auto"]))
+
+
+def test_a_given_background_map_is_subtracted_as_it_is(two_noise_image):
+    # detection.background_level = "observed": the level subtracted is the given map (here the true
+    # sky, 50), not one measured in meshes on this image, where bright sources lift it.
+    data, sigma, xs, ys = two_noise_image
+    crowded = data + render_point_sources(data.shape, xs + 20.0, ys + 25.0, np.full(8, 3.0e5), fwhm=6.0)
+    config = DetectionConfig(thresh=1.0, back_size=32)
+    sky = np.full(data.shape, 50.0, np.float32)
+    measured = detect_array(crowded, weight_noise=sigma, zeropoint=ZP, config=config)
+    assert measured.background.max() > 50.5  # premise: the meshes under the bright sources are lifted
+    given = detect_array(crowded, threshold_background=sky, threshold_noise=sigma, zeropoint=ZP, config=config)
+    np.testing.assert_array_equal(given.background, sky)
+    np.testing.assert_array_equal(given.rms, sigma)  # nothing measured: the rms is the given noise
+    np.testing.assert_array_equal(np.asarray(given.catalog["background"], np.float32), 50.0)
+    assert given.meta["globback"] == 50.0 and given.meta["noisemod"] == "given"
+    # the background alone may be given too: the noise is then measured as usual
+    alone = detect_array(crowded, threshold_background=sky, weight_noise=sigma, zeropoint=ZP, config=config)
+    np.testing.assert_array_equal(alone.background, sky)
+    np.testing.assert_array_equal(alone.noise, measured.noise)
+
+
+def test_sextractor_refuses_a_given_background():
+    from comest_bayes.detect.sextractor import detect_sextractor
+
+    with pytest.raises(ConfigError, match=r"background_level='observed' needs detection\.backend='sep'"):
+        detect_sextractor(np.zeros((8, 8), np.float32), zeropoint=ZP, threshold_background=np.zeros((8, 8)))
+    with pytest.raises(ConfigError, match=r"invalid detection\.background_level = 'observed'.*use the SEP backend"):
+        DetectionConfig(backend="sextractor", background_level="observed")

@@ -5,6 +5,7 @@ import json
 import numpy as np
 import pytest
 from astropy.io import fits
+from astropy.table import Table
 
 from comest_bayes.cli import main
 from comest_bayes.config import load_config as _load_config
@@ -229,3 +230,33 @@ def test_cli_demo_at_a_small_size_runs(tmp_path, capsys):
     summary = json.loads((out / "summary.json").read_text())
     assert summary["kinds"]["point"]["counts"]["usable"] > 50
     assert not (out / "run.lock").exists()
+
+
+def test_observed_noise_and_background_levels_are_recorded_and_used(small_tile, tmp_path):
+    # detection.noise_level / background_level = "observed" and matching.exclude_clean_zone: run.json
+    # records them, and every re-detection of an injected image used the observed noise map as it is
+    # (each detection's noise is a value of noise.fits; re-measured per image, the weight map would
+    # be rescaled and no value would be).
+    _, paths = small_tile
+    out = tmp_path / "run"
+    config = _load_config(overrides=["injection.nsims=2", "fit.model=none", "fit.purity_model=none",
+                                     "injection.kinds=buldisk", "detection.noise_level=observed",
+                                     "detection.background_level=observed", "matching.exclude_clean_zone=true"])
+    run_pipeline(_options(paths), config, out, log=lambda s: None)
+    recorded = json.loads((out / "run.json").read_text())["fingerprint"]["config"]
+    assert recorded["detection"]["noise_level"] == "observed"
+    assert recorded["detection"]["background_level"] == "observed"
+    assert recorded["matching"]["exclude_clean_zone"] is True
+    noise = fits.getdata(out / "noise.fits").astype(np.float32)
+    from comest_bayes.io import layout
+    from comest_bayes.recover.realization import realization_file
+
+    dets = Table.read(realization_file(out / layout.SIMS_DIR, "buldisk", 0), hdu="DETECTIONS")
+    assert len(dets) > 20
+    assert np.all(np.isin(np.asarray(dets["noise"], np.float32), noise))
+    back = fits.getdata(out / "background.fits").astype(np.float32)
+    assert np.all(np.isin(np.asarray(dets["background"], np.float32), back))
+    # the clean zone left some injections out (flag 8), and only those beside the masked ones
+    injected = Table.read(out / "catalogs" / "buldisk_injected.fits")
+    zone = (np.asarray(injected["flag"]) & 8) != 0
+    assert zone.any() and not np.any(np.asarray(injected["usable"])[zone])

@@ -223,3 +223,29 @@ def test_matching_speed_20000_by_25000():
     assert elapsed < 1.0
     # nearly all the displaced copies (sd 1 px, 4 px radius, sd 0.3 mag) are recovered
     assert res.n_matched >= 17_900
+
+
+# --------------------------------------------------------------------------- the clean zone
+
+
+def test_clean_zone_flags_fainter_injections_within_reach_of_detected_brighter_ones():
+    from comest_bayes.recover.matching import CLEAN_ZONE, in_clean_zone
+
+    # a bright detected injection (a = 3 px) at the origin; the zone for a neighbour of a = 1 px is
+    # CLEAN_ZONE x (3 + 1) = 40 px.  Fainter injections at 39.9 px (inside) and 40.0 px (on the edge:
+    # cleaning needs strictly less) and a brighter one inside; an undetected bright one cleans nothing.
+    x = np.array([0.0, 39.9, 0.0, 10.0, 500.0, 520.0])
+    y = np.array([0.0, 0.0, 40.0, 0.0, 0.0, 0.0])
+    flux = np.array([100.0, 1.0, 1.0, 200.0, 100.0, 1.0])
+    a = np.array([3.0, np.nan, np.nan, np.nan, np.nan, np.nan])
+    out = in_clean_zone(x, y, flux, a, a_other=1.0)
+    assert CLEAN_ZONE == 10.0
+    np.testing.assert_array_equal(out, [False, True, False, False, False, False])
+    # the zone grows with the cleaner's size and the assumed size of the other
+    np.testing.assert_array_equal(in_clean_zone(x, y, flux, a, a_other=1.1), [False, True, True, False, False, False])
+    # the brighter one at 10 px, once detected, puts the first one and both faint ones in its zone
+    a[3] = 1.0
+    np.testing.assert_array_equal(in_clean_zone(x, y, flux, a, a_other=1.0), [True, True, False, False, False, False])
+    assert not in_clean_zone(x[:0], y[:0], flux[:0], a[:0], a_other=1.0).size
+    with pytest.raises(InputError, match="a_other must be >= 0"):
+        in_clean_zone(x, y, flux, a, a_other=-1.0)

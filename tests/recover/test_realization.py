@@ -690,3 +690,22 @@ def test_realizations_without_injections_are_recorded_and_not_rerun(tmp_path):
     lines = []
     run_pipeline(image, config, out, log=lines.append, compute=SERIAL)
     assert any(f"inject: all {nsims} realizations done earlier" in s for s in lines), lines
+
+
+@pytest.mark.parametrize("noise_mode", ["background", "weight"])
+def test_observed_noise_level_thresholds_every_realization_at_the_observed_noise_map(tmp_path, noise_mode):
+    # detection.noise_level = "observed": the realization's threshold sigma is the run's noise map
+    # (noise.fits, here SIGMA left and 2 SIGMA right) as it is, whatever the injections add to the
+    # image's measured RMS.  Every detection's noise is then one of the two levels exactly; re-measured
+    # per image ("per_image"), the weight map is rescaled by this image's RMS and the levels move.
+    ctx, base, mask, sigma = _small_context(tmp_path, noise_mode=noise_mode)
+    levels = np.float32([SIGMA, 2 * SIGMA])
+    fixed = dataclasses.replace(ctx, detection=dataclasses.replace(ctx.detection, noise_level="observed"))
+    result = recovery.run_realization(recovery.RealizationTask(fixed, "buldisk", 3))
+    assert result.error is None, result.error
+    noise = np.asarray(result.detections["noise"], np.float32)
+    assert len(noise) > 40  # premise: a real realization
+    assert np.all(np.isin(noise, levels)), np.unique(noise)[:8]
+    per_image = recovery.run_realization(recovery.RealizationTask(ctx, "buldisk", 3))
+    moved = np.asarray(per_image.detections["noise"], np.float32)
+    assert not np.all(np.isin(moved, levels))  # premise: the per-image level differs from the given one
