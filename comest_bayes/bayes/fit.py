@@ -168,6 +168,11 @@ def _probe_magnitudes(m: np.ndarray, detected: np.ndarray) -> tuple[float, float
     return mid - PROBE_OFFSET, mid + PROBE_OFFSET
 
 
+#: Position blocks per axis of the cells an escalated width selection fits: a plane in log w
+#: needs little spatial resolution, and 8 x 8 blocks hold about a quarter of the 16 x 16 cells.
+WIDTH_NUV = 8
+
+
 def targeted_quantities(cells: Footprint, probes, lo: float, hi: float):
     """The quantities the selection's adequacy check compares: ``(model, draws) -> {name: (S,)}``.
 
@@ -326,7 +331,7 @@ def fit_kind(outcomes: Table, *, kind: str, quantity: str, requested: str, confi
             if width_test["escalated"]:
                 first = {"chosen": sel.chosen, "table": sel.to_dict()["table"]}
                 candidates = [chosen_spec] + width_cands
-                data = compress_for(candidates, cov, outcome, meta=meta)
+                data = compress_for(candidates, cov, outcome, meta=meta, nuv=WIDTH_NUV)
                 cells = footprint_cells(True)
                 quantities = targeted_quantities(cells, probes, mag_lo, mag_hi)
                 # the chosen rung starts from its MAP on the coarser cells (the same parameters)
