@@ -201,18 +201,12 @@ class ModelSpec:
             tau = self.spline_tau
         _check(tau == "evidence" or (isinstance(tau, float) and math.isfinite(tau) and tau > 0), "spline_tau",
                tau, "\"evidence\" or a positive number")
-        cands = self.candidates
-        if isinstance(cands, list):
-            object.__setattr__(self, "candidates", tuple(cands))
-            cands = self.candidates
+        cands = self._tuple_field("candidates")
         _check(isinstance(cands, tuple) and all(isinstance(c, str) and c for c in cands),
                "candidates", cands, "a list of spec names or paths")
         if len(set(cands)) != len(cands):
             raise ConfigError(f"invalid candidates = {list(cands)!r}: a candidate is listed twice.")
-        wc = self.width_candidates
-        if isinstance(wc, list):
-            object.__setattr__(self, "width_candidates", tuple(wc))
-            wc = self.width_candidates
+        wc = self._tuple_field("width_candidates")
         _check(isinstance(wc, tuple) and all(isinstance(c, str) and c for c in wc),
                "width_candidates", wc, "a list of spec names or paths")
         if wc and not cands:
@@ -224,6 +218,14 @@ class ModelSpec:
         if not isinstance(self.priors, Mapping):
             raise ConfigError(f"invalid priors = {self.priors!r}: expected a table {{param: {{dist = ...}}}}.")
         object.__setattr__(self, "priors", _validate_priors(dict(self.priors), self))
+
+    def _tuple_field(self, name: str):
+        """The field ``name``, a list read from TOML stored as a tuple (the spec is frozen and hashed)."""
+        value = getattr(self, name)
+        if isinstance(value, list):
+            value = tuple(value)
+            object.__setattr__(self, name, value)
+        return value
 
     def __hash__(self):
         priors = tuple(sorted((k, tuple(sorted(v.items()))) for k, v in self.priors.items()))
