@@ -171,6 +171,21 @@ def noise_map(mode: str, rms: np.ndarray, global_rms: float, weight_noise: np.nd
     return out, mode
 
 
+def _given_map(what: str, values: np.ndarray, mask: np.ndarray, *, positive: bool) -> np.ndarray:
+    """``values`` as a float32 C-contiguous copy, checked on the unmasked pixels (finite, and > 0 if ``positive``)."""
+    values = np.asarray(values)
+    if values.shape != mask.shape:
+        raise InputError(f"the given {what} map has shape {values.shape} but the image {mask.shape}; pass the "
+                         f"observed detection's {what} map of the same run.")
+    out = np.array(values, dtype=np.float32, order="C", copy=True)
+    bad = ~np.isfinite(out) | (out <= 0) if positive else ~np.isfinite(out)
+    if (bad & ~mask).any():
+        need = "finite and positive" if positive else "finite"
+        raise InputError(f"the given {what} map is not {need} on {int((bad & ~mask).sum())} unmasked pixels; it "
+                         f"must be a {what} level wherever the image is used.")
+    return out
+
+
 def given_noise(noise: np.ndarray, mask: np.ndarray) -> np.ndarray:
     """A noise map given as it is (``detection.noise_level = "observed"``), checked and made contiguous.
 
@@ -195,15 +210,8 @@ def given_noise(noise: np.ndarray, mask: np.ndarray) -> np.ndarray:
         A map of another shape, or one that is not finite and positive on
         every unmasked pixel.
     """
-    noise = np.asarray(noise)
-    if noise.shape != mask.shape:
-        raise InputError(f"the given noise map has shape {noise.shape} but the image {mask.shape}; pass the "
-                         f"observed detection's noise map of the same run.")
-    out = np.array(noise, dtype=np.float32, order="C", copy=True)
+    out = _given_map("noise", noise, mask, positive=True)
     bad = mask | ~np.isfinite(out) | (out <= 0)
-    if (bad & ~mask).any():
-        raise InputError(f"the given noise map is not finite and positive on {int((bad & ~mask).sum())} "
-                         f"unmasked pixels; it must be a noise sigma wherever the image is used.")
     if bad.any():
         out[bad] = float(np.median(out[~bad])) if (~bad).any() else 1.0
     return out
@@ -228,13 +236,6 @@ def given_background(background: np.ndarray, mask: np.ndarray) -> np.ndarray:
     InputError
         A map of another shape, or one not finite on every unmasked pixel.
     """
-    background = np.asarray(background)
-    if background.shape != mask.shape:
-        raise InputError(f"the given background map has shape {background.shape} but the image {mask.shape}; "
-                         f"pass the observed detection's background map of the same run.")
-    out = np.array(background, dtype=np.float32, order="C", copy=True)
-    bad = ~np.isfinite(out)
-    if (bad & ~mask).any():
-        raise InputError(f"the given background map is not finite on {int((bad & ~mask).sum())} unmasked pixels.")
+    out = _given_map("background", background, mask, positive=False)
     out[mask] = 0.0
     return out

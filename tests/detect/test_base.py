@@ -131,6 +131,26 @@ def test_given_noise_is_used_as_it_is_with_masked_pixels_filled():
     assert np.isnan(noise[0, 0])  # the input is never modified
 
 
+def test_given_background_zeroes_masked_pixels_and_refuses_non_finite_unmasked_values():
+    from comest_bayes.detect.base import given_background
+    from comest_bayes.errors import InputError
+
+    back = np.linspace(-2.0, 3.0, 16).reshape(4, 4)
+    mask = np.zeros((4, 4), bool)
+    mask[3, 3] = True
+    back[3, 3] = np.inf  # anything may lie under the mask
+    out = given_background(back, mask)
+    assert out.dtype == np.float32 and out.flags.c_contiguous
+    np.testing.assert_array_equal(out[~mask], back[~mask].astype(np.float32))  # negative levels kept as given
+    assert out[3, 3] == 0.0 and np.isinf(back[3, 3])
+    bad = back.copy()
+    bad[1, 2] = np.nan
+    with pytest.raises(InputError, match=r"background map is not finite on 1 unmasked pixels"):
+        given_background(bad, mask)
+    with pytest.raises(InputError, match=r"shape \(4, 3\) but the image \(4, 4\)"):
+        given_background(np.zeros((4, 3)), mask)
+
+
 def test_given_noise_refuses_a_map_of_another_shape_or_bad_unmasked_values():
     from comest_bayes.detect.base import given_noise
     from comest_bayes.errors import InputError
