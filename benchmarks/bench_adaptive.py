@@ -22,7 +22,7 @@ For each scene:
   geometric ladder of N from 500 to 400,000 injections.
 * **adaptive**: :func:`comest_bayes.pipeline.adaptive.run_sequential` with the
   package's default fit (``auto``) after every batch (a uniform pilot of
-  1000, then batches of half the injections so far, designed for
+  ``--pilot`` (1000), then batches of half the injections so far, at least ``--min-batch`` (250), designed for
   ``--target``), ``--reps`` replicates up to ``--cap`` injections; the error of
   the posterior-median m50 and curve is recorded after every batch (the
   batch sizes are the same in every replicate, so RMSEs are taken per step).
@@ -166,8 +166,8 @@ def adaptive_task(task: dict) -> dict:
     def simulate(mags, k):
         return S.draw_outcomes(truth, scene, seed=task["seed"] * 1000 + k + 1, mags=mags)
 
-    settings = AdaptiveSettings(precision=task["precision"], pilot=1000, growth=0.5, min_batch=250,
-                                max_injections=task["cap"], target=task["target"])
+    settings = AdaptiveSettings(precision=task["precision"], pilot=task.get("pilot", 1000), growth=0.5,
+                                min_batch=task.get("min_batch", 250), max_injections=task["cap"], target=task["target"])
     t0 = time.perf_counter()
     run_sequential(simulate, fit, lo, hi, settings, seed=task["seed"])
     return {"key": task["key"], "steps": steps, "wall": time.perf_counter() - t0}
@@ -379,6 +379,8 @@ def main(argv=None) -> int:
     out = Path(a.out)
     out.mkdir(parents=True, exist_ok=True)
     settings = {"seed": a.seed, "cap": a.cap, "precision": a.precision, "target": a.target}
+    if (a.pilot, a.min_batch) != (1000, 250):  # recorded only when not the first runs' (so their raw.json stays valid)
+        settings.update(pilot=a.pilot, min_batch=a.min_batch)
     raw_path = out / "raw.json"
     raw = {"settings": settings, "uniform": {}, "adaptive": {}}
     if raw_path.exists():
@@ -401,6 +403,7 @@ def main(argv=None) -> int:
             if key not in raw["adaptive"]:
                 tasks.append(("adaptive", {"key": key, "scene": sc, "scene_seed": scene_seed, "cap": a.cap,
                                            "precision": a.precision, "target": a.target,
+                                           "pilot": a.pilot, "min_batch": a.min_batch,
                                            "seed": int_seed_for(a.seed, "adaptive", sc, rep)}))
     t0 = time.perf_counter()
     _run_tasks(tasks, {"uniform": uniform_task, "adaptive": adaptive_task}, raw, raw_path, a.workers)
