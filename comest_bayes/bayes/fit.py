@@ -28,7 +28,7 @@ from comest_bayes.seeding import Stream, int_seed_for, rng_for
 from comest_bayes.bayes.selection import WIDTH_TEST_P, choose_tau, select_model, width_position_test
 
 __all__ = ["fit_kind", "FitEntry", "purity_outcomes", "warm_state", "shared_maps", "footprint_grid", "needs_smooth",
-           "MIN_OUTCOMES", "MIN_CLASS"]
+           "may_escalate", "MIN_OUTCOMES", "MIN_CLASS"]
 
 #: Fewer usable outcomes than this: the fit still runs but warns that the prior dominates.
 MIN_OUTCOMES = 20
@@ -200,6 +200,14 @@ def needs_smooth(requested: str) -> bool:
     return any(c.uses_position for c in (resolve_candidates(spec) if spec.is_selection else [spec]))
 
 
+def may_escalate(requested: str) -> bool:
+    """Whether a fit of ``requested`` may need position-resolved footprint cells it did not ask for upfront:
+    a selection with width candidates escalates to them when its width test fires (the cells
+    of :func:`footprint_grid` ``(True)`` are then built from the noise map)."""
+    spec = load_spec(requested)
+    return bool(spec.is_selection and resolve_width_candidates(spec))
+
+
 def footprint_histograms(noise: np.ndarray | None, mask: np.ndarray, requested) -> dict:
     """The footprint histograms the fits of ``requested`` models need, keyed by ``(ddepth, nuv)``.
 
@@ -306,6 +314,12 @@ def fit_kind(outcomes: Table, *, kind: str, quantity: str, requested: str, confi
                                          nuv=grid[1])
         hist = (footprints or {}).get(grid)
         if hist is None:
+            if noise is None:
+                # a histogram without the noise map would put every pixel at the reference depth: an image
+                # average that silently ignores the depth field
+                raise InputError(f"fit_kind: the {kind} {quantity} fit needs the footprint cells {grid} (ddepth, nuv), "
+                                 "which are neither in `footprints` nor computable without the noise map; pass "
+                                 "`noise` (or the histogram in `footprints`).")
             hist = FootprintHistogram.from_maps(noise, mask, ddepth=grid[0], nuv=grid[1])
         return Footprint.from_histogram(hist, data.meta.get("sigma_ref"))
 
