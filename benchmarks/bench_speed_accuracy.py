@@ -229,7 +229,8 @@ def run_maps(run_dir: Path, requested) -> dict:
     mask = fits.getdata(run_dir / "mask.fits").astype(bool)
     c0 = time.process_time()
     shared = shared_maps(noise, mask, sorted(set(requested)))
-    return {"shape": tuple(noise.shape), "mask": mask, "shared": shared, "cpu": time.process_time() - c0}
+    return {"shape": tuple(noise.shape), "noise": noise, "mask": mask, "shared": shared,
+            "cpu": time.process_time() - c0}
 
 
 def _footprint_cells(maps: dict, spec, sigma_ref):
@@ -311,8 +312,8 @@ def auto_estimate(rows: Table, *, seed: int, wide, maps: dict, mag_range) -> dic
 
     ``rows``: the subset's rows of the run's outcome table, every column (``fit_task`` reads the
     whole table).  The footprint histograms and noise grid come from ``maps`` (:func:`run_maps`),
-    as ``shared_maps`` hands them to ``fit_task``; the noise map itself is then not needed
-    (``fit_task`` passes none), the mask is.  Returns the curves of the footprint average on
+    as ``shared_maps`` hands them to ``fit_task``; the noise map is passed as well, as ``fit_task``
+    does for a selection that may escalate to a positional width (whose cells it then builds).  Returns the curves of the footprint average on
     ``wide``, their m50, the CPU seconds (the fit, the summary draws and the one pass over the
     maps a run makes), the chosen model and the selection table.
     """
@@ -324,7 +325,7 @@ def auto_estimate(rows: Table, *, seed: int, wide, maps: dict, mag_range) -> dic
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
         post, entry = fit_kind(rows, kind="point", quantity="completeness", requested="auto",
-                               config=RunConfig(seed=int(seed)), image_shape=maps["shape"], noise=None,
+                               config=RunConfig(seed=int(seed)), image_shape=maps["shape"], noise=maps["noise"],
                                mask=maps["mask"], wcs_header=None, mag_range=tuple(mag_range),
                                mag_centers=0.5 * (edges[:-1] + edges[1:]),
                                footprints=maps["shared"]["footprints"], noise_grid=maps["shared"]["noise_grid"])
