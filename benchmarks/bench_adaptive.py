@@ -174,16 +174,22 @@ def adaptive_task(task: dict) -> dict:
 
 
 def _needed(ns, rmse, target: float) -> float | None:
-    """Injections where RMSE first falls to ``target`` (log-log interpolation between the bracketing N)."""
+    """Injections from which the RMSE stays at or below ``target`` through the last step (log-log
+    interpolation between the step above it and the next).
+
+    Not the *first* crossing: with a few replicates an RMSE that dips below the target once and
+    rises above it again (one replicate's miss at a later step) would credit a method with a level
+    it does not hold.
+    """
     ns, rmse = np.asarray(ns, float), np.asarray(rmse, float)
     ok = np.isfinite(rmse)
     ns, rmse = ns[ok], rmse[ok]
-    below = np.flatnonzero(rmse <= target)
-    if below.size == 0:
+    if ns.size == 0 or rmse[-1] > target:
         return None
-    i = int(below[0])
-    if i == 0:
+    above = np.flatnonzero(rmse > target)
+    if above.size == 0:
         return float(ns[0])
+    i = int(above[-1]) + 1
     if rmse[i] <= 0:  # an RMSE with the reference's noise taken out can reach 0
         return float(ns[i])
     x0, x1, y0, y1 = np.log(ns[i - 1]), np.log(ns[i]), np.log(rmse[i - 1]), np.log(rmse[i])
