@@ -160,7 +160,7 @@ def adaptive_task(task: dict) -> dict:
                       "curve_rms": float(np.sqrt(np.mean((np.interp(grid[window], view.grid, med)
                                                           - curve[window]) ** 2))),
                       "halfwidth": view.m50_halfwidth, "cover68": bool(q[1] <= m50 <= q[3]),
-                      "cover95": bool(q[0] <= m50 <= q[4]), "cpu_fit": cpu, "model": post[1]["name"]})
+                      "cover95": bool(q[0] <= m50 <= q[4]), "cpu_fit": cpu, "model": post[1].name})
         return view, post
 
     def simulate(mags, k):
@@ -752,7 +752,7 @@ def pool_adaptive_task(task: dict) -> dict:
         m_ref = refs[primary]["m50"]
         steps.append({"n": len(table), "scores": sc, "halfwidth": view.m50_halfwidth,
                       "cover68": bool(q[1] <= m_ref <= q[3]), "cover95": bool(q[0] <= m_ref <= q[4]),
-                      "cpu_fit": cpu, "model": post[1]["name"],
+                      "cpu_fit": cpu, "model": post[1].name,
                       "within06": float(np.mean(np.abs(np.asarray(table["mag"]) - m_ref) <= 0.6))})
         return view, post
 
