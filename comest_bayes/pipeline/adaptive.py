@@ -343,7 +343,7 @@ def design_rung(spec):
 def package_fitter(*, image_shape, noise, mask, lo: float, hi: float, seed: int, model: str = "auto",
                    kind: str = "point", ngrid: int = 121, nsamples: int = 1000, mag_bin: float = 0.1,
                    reselect: float = 4.0, magnitudes=(), maps: dict | None = None, design_samples: int = 200,
-                   width_test: bool = False, defer_selection: bool = True):
+                   width_test: bool = True, defer_selection: bool = True):
     """A ``fit`` callable for :func:`run_sequential` that runs the package's own completeness fit.
 
     Each call fits every outcome so far with :func:`comest_bayes.bayes.fit.fit_kind`
@@ -360,11 +360,12 @@ def package_fitter(*, image_shape, noise, mask, lo: float, hi: float, seed: int,
     ``defer_selection`` the pilot is compared as well.  Every other call
     refits the current model from the previous posterior
     (:func:`comest_bayes.bayes.fit.warm_state`: Newton steps from its median,
-    the spline's smoothness kept), which costs a fraction of a selection.  The
-    design's comparisons skip the positional-width test unless
-    ``width_test`` (the design aims at the image-average curve; the run's own
-    fit after the design keeps the test).  Why a selection is deferred and
-    what it costs: ``docs/adaptive.md``.
+    the spline's smoothness kept), which costs a fraction of a selection.  A
+    comparison runs the positional-width test of the package's fit and
+    escalates when it fires (``width_test=False`` skips it: cheaper, but on a
+    scene whose width varies across the image the design's m50 then carries
+    the misfit).  Why a selection is deferred and what it costs:
+    ``docs/adaptive.md``.
 
     ``maps``: :func:`comest_bayes.bayes.fit.shared_maps` of ``noise`` and
     ``mask`` for ``model`` (computed on the first call when not given): the

@@ -262,5 +262,5 @@ def test_the_design_defers_the_selection_to_four_times_the_pilot_and_refits_warm
     compared = [n for n, name, warm in asked if name == "auto"]
     assert compared[0] == first and all(b >= 4 * a for a, b in zip(compared, compared[1:]))
     assert all(warm for n, name, warm in asked if name not in ("auto",) and n != 1000)
-    # the design's comparisons skip the positional-width test; its one-model fits from scratch take 2 MAP starts
-    assert {c[3] for c in calls} == {False} and {c[4] for c in calls} == {A.DESIGN_MAP_STARTS}
+    # the design's comparisons run the positional-width test; its one-model fits from scratch take 2 MAP starts
+    assert {c[3] for c in calls} == {True} and {c[4] for c in calls} == {A.DESIGN_MAP_STARTS}
