@@ -238,7 +238,8 @@ def fit_kind(outcomes: Table, *, kind: str, quantity: str, requested: str, confi
              noise: np.ndarray, mask: np.ndarray, wcs_header: str | None, mag_range, mag_centers,
              outcome_column: str = "detected", footprint_points=None, warm: dict | None = None,
              footprints: dict | None = None, noise_grid: np.ndarray | None = None,
-             products: bool = True, log=lambda s: None) -> tuple[CompletenessPosterior, FitEntry]:
+             products: bool = True, width_test: bool = True, map_starts: int = 6,
+             log=lambda s: None) -> tuple[CompletenessPosterior, FitEntry]:
     """Fit (or select and fit) the model of one kind and quantity.
 
     Parameters
@@ -265,8 +266,11 @@ def fit_kind(outcomes: Table, *, kind: str, quantity: str, requested: str, confi
     footprints : dict, optional
         Footprint histograms of ``noise`` and ``mask`` already computed
         (:func:`footprint_histograms`, keyed by ``(ddepth, nuv)``): the one
-        pass over the pixels that every fit of a run shares.  Computed here
-        when absent.
+        pass over the pixels that every fit of a run shares.  A histogram
+        computed here because it is absent (e.g. the position blocks of an
+        escalated width selection) is added to the dict, so a caller that
+        fits again with the same dict (the adaptive design's refits) makes
+        that pass once.
     noise_grid : ndarray, optional
         :func:`~comest_bayes.bayes.posterior.coarse_noise_map` of the maps, likewise.
     products : bool, default True
@@ -274,6 +278,14 @@ def fit_kind(outcomes: Table, *, kind: str, quantity: str, requested: str, confi
         shape check).  False for a fit whose posterior is only queried by its caller (the adaptive
         design's refits): the entry then has empty ``magnitudes`` and ``curve`` and no
         ``shape_check``; the posterior is the same.
+    width_test : bool, default True
+        With a selection: run the positional-width score test of the chosen rung and escalate when
+        it fires (docs/bayesian.md).  False skips it (the adaptive design's fits, which aim at the
+        image-average curve; the run's own fit after the design keeps the test).
+    map_starts : int, default 6
+        Optimizer starts of the MAP of one model fitted from scratch (not a selection, not a warm
+        refit; :func:`comest_bayes.bayes.inference.fit_map`): the adaptive design's pilot of its
+        design rung uses 2, as every candidate of a selection does.
 
     Returns
     -------
@@ -321,6 +333,8 @@ def fit_kind(outcomes: Table, *, kind: str, quantity: str, requested: str, confi
                                  "which are neither in `footprints` nor computable without the noise map; pass "
                                  "`noise` (or the histogram in `footprints`).")
             hist = FootprintHistogram.from_maps(noise, mask, ddepth=grid[0], nuv=grid[1])
+            if footprints is not None:
+                footprints[grid] = hist  # the caller's next fit with this dict reuses the pass
         return Footprint.from_histogram(hist, data.meta.get("sigma_ref"))
 
     cells = footprint_cells(any(c.uses_position for c in candidates))
@@ -334,15 +348,15 @@ def fit_kind(outcomes: Table, *, kind: str, quantity: str, requested: str, confi
         quantities = targeted_quantities(cells, probes, mag_lo, mag_hi)
         sel = select_model(data, candidates, seed=seed, quantities=quantities, mag_edges=edges)
         chosen_spec = next(c for c in candidates if c.name == sel.chosen)
-        width_test = None
+        tested = None
         width_cands = resolve_width_candidates(spec)
-        if width_cands and not chosen_spec.uses_position and "uv" in (meta.get("available") or ()):
+        if width_test and width_cands and not chosen_spec.uses_position and "uv" in (meta.get("available") or ()):
             # the width test of the chosen rung: one Jacobian of its cells, no refit (docs/bayesian.md,
             # "Positional width"); only a scene whose width differs across the image pays for position
             test = width_position_test(sel.models[sel.chosen], sel.fits[sel.chosen].map.theta, cov.u, cov.v,
                                        outcome)
-            width_test = {**test.to_dict(), "threshold": WIDTH_TEST_P, "escalated": bool(test.p_value < WIDTH_TEST_P)}
-            if width_test["escalated"]:
+            tested = {**test.to_dict(), "threshold": WIDTH_TEST_P, "escalated": bool(test.p_value < WIDTH_TEST_P)}
+            if tested["escalated"]:
                 first = {"chosen": sel.chosen, "table": sel.to_dict()["table"]}
                 candidates = [chosen_spec] + width_cands
                 data = compress_for(candidates, cov, outcome, meta=meta, nuv=WIDTH_NUV)
@@ -353,14 +367,14 @@ def fit_kind(outcomes: Table, *, kind: str, quantity: str, requested: str, confi
                 sel = select_model(data, candidates, seed=seed, quantities=quantities, mag_edges=edges,
                                    start=warm_from)
                 chosen_spec = next(c for c in candidates if c.name == sel.chosen)
-                width_test["first_selection"] = first
+                tested["first_selection"] = first
                 log(f"fit: {kind} {quantity}: the width varies across the image (score test p = "
                     f"{test.p_value:.2g}); selection escalated to {[c.name for c in candidates]}")
         model = sel.models[sel.chosen]
         mp = sel.fits[sel.chosen].map
         selection = {k: v for k, v in sel.to_dict().items() if k != "diagnostics"}
-        if width_test is not None:
-            selection["width_test"] = width_test
+        if tested is not None:
+            selection["width_test"] = tested
         chosen_loo = sel.loo[sel.chosen]
         if chosen_loo.n_bad_k:
             warn.append(f"leave-one-out of the chosen model {sel.chosen}: {chosen_loo.n_bad_k} of {chosen_loo.n} "
@@ -383,7 +397,7 @@ def fit_kind(outcomes: Table, *, kind: str, quantity: str, requested: str, confi
         if spec.link == "spline" and spec.spline_tau == "evidence":
             _, mp, _ = choose_tau(model, seed=seed)
     result = fit(model, seed=seed, sampler=config.fit.sampler, min_ess=config.fit.min_ess,
-                 max_steps=config.fit.max_steps, mp=mp)
+                 max_steps=config.fit.max_steps, mp=mp, nstarts=map_starts)
     for w in covariate_warnings(chosen_spec, data):
         warnings.warn(w, UserWarning, stacklevel=2)
         warn.append(w)

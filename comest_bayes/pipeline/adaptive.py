@@ -31,10 +31,10 @@ from comest_bayes.seeding import Stream, rng_for, int_seed_for
 from comest_bayes.ratios import binned as R
 from comest_bayes.config import RunConfig
 from comest_bayes.bayes.fit import fit_kind, shared_maps, warm_state
-from comest_bayes.bayes.spec import load_spec
+from comest_bayes.bayes.spec import load_spec, resolve_candidates
 
 __all__ = ["AdaptiveSettings", "BatchRecord", "SequentialResult", "run_sequential", "PosteriorView",
-           "after_batch", "attained", "check_recorded", "check_magnitudes", "package_fitter"]
+           "after_batch", "attained", "check_recorded", "check_magnitudes", "package_fitter", "design_rung"]
 
 
 @dataclass(frozen=True)
@@ -322,64 +322,102 @@ def run_sequential(simulate, fit, lo: float, hi: float, settings: AdaptiveSettin
     return SequentialResult(table=table, batches=batches, reached=reached, reason=reason, posterior=post)
 
 
+#: MAP starts of a design fit of one model from scratch (the design rung's pilot), as for every
+#: candidate of a selection (the package's one-model fits use 6).
+DESIGN_MAP_STARTS = 2
+
+
+def design_rung(spec):
+    """The model a selection's design fits use before its first selection: its most flexible candidate
+    whose link is not a spline (``richards_depth`` for ``auto``), or its last candidate.
+
+    A spline rung chooses its smoothness over a grid of scales (several MAPs) and carries some twenty
+    parameters; the rung below it keeps an asymmetric transition and the depth term at a fraction of
+    that cost.  ``spec``: a selection :class:`~comest_bayes.bayes.spec.ModelSpec` (or its name).
+    """
+    candidates = resolve_candidates(load_spec(spec))
+    plain = [c for c in candidates if c.link != "spline"]
+    return (plain or candidates)[-1]
+
+
 def package_fitter(*, image_shape, noise, mask, lo: float, hi: float, seed: int, model: str = "auto",
-                   kind: str = "point", ngrid: int = 161, nsamples: int = 1000, mag_bin: float = 0.1,
-                   reselect: float = 4.0, magnitudes=(), maps: dict | None = None, design_samples: int = 400):
+                   kind: str = "point", ngrid: int = 121, nsamples: int = 1000, mag_bin: float = 0.1,
+                   reselect: float = 4.0, magnitudes=(), maps: dict | None = None, design_samples: int = 200,
+                   width_test: bool = True, defer_selection: bool = True):
     """A ``fit`` callable for :func:`run_sequential` that runs the package's own completeness fit.
 
     Each call fits every outcome so far with :func:`comest_bayes.bayes.fit.fit_kind`
     (seed stream ``("design-fit", k)``) and returns the :class:`PosteriorView`
     on ``ngrid`` magnitudes over ``[lo, hi]`` (plus ``magnitudes``, so that f
     there is read without interpolation) and the ``(posterior, entry)``
-    pair.  With a selection such as ``auto`` the models are compared on the
-    pilot and again whenever the outcomes have grown ``reselect`` times since
-    the last comparison; in between, the chosen model is refitted from the
-    previous posterior (:func:`comest_bayes.bayes.fit.warm_state`: Newton steps
-    from its median, the spline's smoothness kept), which costs a fraction of
-    a selection.  ``maps``: :func:`comest_bayes.bayes.fit.shared_maps` of
-    ``noise`` and ``mask`` for ``model`` (computed on the first call when not
-    given): the pass over the pixels is made once, not once per refit.  The
-    entry is made with ``products=False`` (no m50/m80/m90 summaries, curve or
-    shape check: the view carries what the design needs, and the run's fit
-    stage fits the final outcomes with every product).  With an m50 target
-    the curves that shape the design are evaluated for ``design_samples``
-    draws (with their own m50, :attr:`PosteriorView.curve_m50`) while the
-    precision is read off ``nsamples`` draws: the curve on ``ngrid``
-    magnitudes was the costliest part of a refit.
+    pair.
+
+    With a selection such as ``auto`` the models are compared once the
+    outcomes have grown ``reselect`` times since the pilot, and again whenever
+    they have grown ``reselect`` times since the last comparison.  Before the
+    first comparison (``defer_selection``) the design fits one fixed rung,
+    :func:`design_rung` (``richards_depth`` for ``auto``); without
+    ``defer_selection`` the pilot is compared as well.  Every other call
+    refits the current model from the previous posterior
+    (:func:`comest_bayes.bayes.fit.warm_state`: Newton steps from its median,
+    the spline's smoothness kept), which costs a fraction of a selection.  A
+    comparison runs the positional-width test of the package's fit and
+    escalates when it fires (``width_test=False`` skips it: cheaper, but on a
+    scene whose width varies across the image the design's m50 then carries
+    the misfit).  Why a selection is deferred and what it costs:
+    ``docs/adaptive.md``.
+
+    ``maps``: :func:`comest_bayes.bayes.fit.shared_maps` of ``noise`` and
+    ``mask`` for ``model`` (computed on the first call when not given): the
+    pass over the pixels is made once, not once per refit (a grid a fit
+    needs beyond it, e.g. an escalated width selection's position blocks,
+    is added to it by the first fit that makes it).  The entry is made with
+    ``products=False`` (no m50/m80/m90 summaries, curve or shape check: the
+    view carries what the design needs, and the run's fit stage fits the
+    final outcomes with every product).  With an m50 target the curves that
+    shape the design are evaluated for ``design_samples`` draws (with their
+    own m50, :attr:`PosteriorView.curve_m50`) while the precision is read off
+    ``nsamples`` draws.
     """
-
-
     edges = R.magnitude_edges(lo, hi, mag_bin)
     centers = 0.5 * (edges[:-1] + edges[1:])
     grid = np.union1d(np.linspace(lo, hi, int(ngrid)), np.asarray(magnitudes, dtype=np.float64))
-    selecting = load_spec(model).is_selection
-    state = {"warm": None, "selected_at": 0, "maps": maps}
+    spec = load_spec(model)
+    selecting = spec.is_selection
+    state = {"warm": None, "spec": None, "selected_at": 0, "first": None, "maps": maps}
 
     def fit(table, k):
         n = len(table)
         if state["maps"] is None:
             state["maps"] = shared_maps(noise, mask, [model])
-        warm = state["warm"]
-        if selecting and (warm is None or n >= reselect * state["selected_at"]):
-            warm = None
+        if state["first"] is None:
+            state["first"] = n
+        warm, requested = state["warm"], state["spec"]
+        if selecting:
+            since = state["selected_at"] or (state["first"] if defer_selection else 0)
+            if since == 0 or n >= reselect * since:  # a comparison of the candidates, from scratch
+                warm, requested = None, spec
+            elif warm is None:  # the pilot before the first comparison: the design rung, from scratch
+                requested = design_rung(spec)
+        elif warm is None:
+            requested = spec
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")
-            post, entry = fit_kind(table, kind=kind, quantity="completeness",
-                                   requested=model if warm is None else warm["model"],
+            post, entry = fit_kind(table, kind=kind, quantity="completeness", requested=requested,
                                    config=RunConfig(seed=int_seed_for(seed, Stream.DESIGN_FIT, k)),
                                    image_shape=image_shape, noise=noise, mask=mask, wcs_header=None,
                                    mag_range=(lo, hi), mag_centers=centers, warm=warm,
                                    footprints=state["maps"]["footprints"], noise_grid=state["maps"]["noise_grid"],
-                                   products=False)
+                                   products=False, width_test=width_test, map_starts=DESIGN_MAP_STARTS)
             m50 = post.magnitudes_at((0.5,), nsamples=nsamples)[0.5]
             if len(magnitudes):  # the precision on f is read off the curves: all the draws
                 curves, curve_m50 = post.average_curve(grid, nsamples=nsamples), None
             else:  # the curves only shape the design: fewer draws, with their own m50
                 curves = post.average_curve(grid, nsamples=design_samples)
                 curve_m50 = post.magnitudes_at((0.5,), nsamples=design_samples)[0.5]
-        if warm is None:
+        if requested is spec and selecting:
             state["selected_at"] = n
-        state["warm"] = warm_state(post)
+        state["warm"], state["spec"] = warm_state(post), post.spec
         entry = replace(entry, warm_refit=warm is not None)
         converged = bool(entry.diagnostics.get("converged", True))
         return (PosteriorView(grid=grid, curves=curves, m50=np.asarray(m50, float), converged=converged,

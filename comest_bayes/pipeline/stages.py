@@ -46,7 +46,7 @@ from comest_bayes.recover.realization import RealizationTask, SimContext, merge_
 from comest_bayes.ratios.summary import SUMMARY_FORMAT, depth_summary, kind_binned, kind_summary, maps_hdulist
 from comest_bayes.pipeline.adaptive import after_batch, check_recorded, package_fitter
 from comest_bayes.inject.design import MagnitudeDesign, uniform_design
-from comest_bayes.bayes.fit import shared_maps
+from comest_bayes.bayes.fit import footprint_grid, needs_smooth, shared_maps
 from comest_bayes.pipeline.fits import FitFailure, fit_task, fit_tasks
 
 __all__ = ["ImageOptions", "ComputeOptions", "RunResult", "run_pipeline", "output_header"]
@@ -513,10 +513,11 @@ def _injection_stages(run: RunDirectory, image: ImageData, det: DetectionResult,
     cpu = {"inject": 0.0}
     nsims = {kind: inj.nsims for kind in inj.kinds}
     adaptive_summary = None
+    design_maps = {}  # the adaptive design's pass over the maps, which the fit stage reuses
     if config.adaptive.enabled:
         t0 = time.perf_counter()
         nsims, adaptive_summary = _adaptive_injection(run, ctx, config, compute, log, det.noise, image.mask,
-                                                      mag_range, cpu)
+                                                      mag_range, cpu, maps_out=design_maps)
         timings["inject"] = round(time.perf_counter() - t0, 3)
         timings["inject_cpu"] = round(cpu["inject"], 3)
         timings["design_fit_cpu"] = round(cpu.get("design_fit", 0.0), 3)
@@ -592,7 +593,7 @@ def _injection_stages(run: RunDirectory, image: ImageData, det: DetectionResult,
 
     # ---- the Bayesian completeness and purity models ---------------------------------
     t0 = time.perf_counter()
-    if _fit_stages(run, image, det, config, kinds, edges, mag_range, log, compute, cpu):
+    if _fit_stages(run, image, det, config, kinds, edges, mag_range, log, compute, cpu, maps=design_maps):
         timings["fit"] = round(time.perf_counter() - t0, 3)
         timings["fit_cpu"] = round(cpu.get("fit", 0.0), 3)
 
@@ -721,7 +722,8 @@ def _realization_recorder(sims, cpu: dict, log, said: set, on_failure, *, label:
 
 
 def _adaptive_injection(run: RunDirectory, ctx, config: RunConfig, compute: "ComputeOptions", log,
-                        noise: np.ndarray, mask: np.ndarray, mag_range, cpu: dict) -> tuple[dict, dict]:
+                        noise: np.ndarray, mask: np.ndarray, mag_range, cpu: dict,
+                        maps_out: dict | None = None) -> tuple[dict, dict]:
     """Realizations in batches designed from the posterior, per kind, until the precision (docs/adaptive.md).
 
     Batch ``k`` of a kind draws its magnitudes from the design built from the outcomes of its batches
@@ -729,7 +731,9 @@ def _adaptive_injection(run: RunDirectory, ctx, config: RunConfig, compute: "Com
     its realizations runs.  A resumed run recomputes the same fits (seeded) and checks its designs
     against the recorded ones; finished realizations are not run again.
 
-    Returns the number of realizations per kind and the ``summary.json`` entry ``adaptive``.
+    Returns the number of realizations per kind and the ``summary.json`` entry ``adaptive``.  The
+    design's :func:`~comest_bayes.bayes.fit.shared_maps` (one pass over the noise map and mask, timed
+    with the design fits) is added to ``maps_out``, for the fit stage to reuse.
     """
 
     from astropy.table import vstack
@@ -749,8 +753,11 @@ def _adaptive_injection(run: RunDirectory, ctx, config: RunConfig, compute: "Com
     model = config.fit.model if config.fit.model != "none" else "auto"
     # one pass over the pixels for every design fit of every kind, timed with them
     c0 = time.process_time()
-    maps = shared_maps(noise, mask, [model])
+    # (the fit stage's own casts, so that a fit stage reusing it computes exactly what it would compute)
+    maps = shared_maps(np.asarray(noise, np.float32), np.asarray(mask, bool), [model])
     cpu["design_fit"] = cpu.get("design_fit", 0.0) + time.process_time() - c0
+    if maps_out is not None:
+        maps_out.update(maps)
     state = {}
     for kind in config.injection.kinds:
         state[kind] = {"n": 0, "design": uniform_design(lo, hi), "batches": [], "done": False, "reached": False,
@@ -842,11 +849,14 @@ def _adaptive_injection(run: RunDirectory, ctx, config: RunConfig, compute: "Com
 
 
 def _fit_stages(run: RunDirectory, image: ImageData, det: DetectionResult, config: RunConfig, kinds: dict,
-                edges, mag_range, log, compute: "ComputeOptions", cpu: dict | None = None) -> int:
+                edges, mag_range, log, compute: "ComputeOptions", cpu: dict | None = None,
+                maps: dict | None = None) -> int:
     """Fit completeness (and purity) per kind, in parallel; add their entries to ``kinds`` (resumable).
 
     Returns the number of fits run now (0 when all were done earlier or no model is fitted); their
-    CPU seconds (as measured in the workers) are added to ``cpu["fit"]``.
+    CPU seconds (as measured in the workers) are added to ``cpu["fit"]``.  ``maps``: a
+    :func:`~comest_bayes.bayes.fit.shared_maps` of this run's noise map and mask made earlier (the
+    adaptive design's), used when it holds every footprint grid the fits need.
     """
     cpu = {} if cpu is None else cpu
 
@@ -877,8 +887,9 @@ def _fit_stages(run: RunDirectory, image: ImageData, det: DetectionResult, confi
         # one pass over the maps (in memory: the noise.fits and mask.fits the fits would read) for every fit
         # (footprint cells, noise grid), timed as part of the fit stage
         c0 = time.process_time()
-        maps = shared_maps(np.asarray(det.noise, np.float32), np.asarray(image.mask, bool),
-                           sorted({t["requested"] for t in tasks}))
+        requested = sorted({t["requested"] for t in tasks})
+        if not (maps and all(footprint_grid(needs_smooth(r)) in maps["footprints"] for r in requested)):
+            maps = shared_maps(np.asarray(det.noise, np.float32), np.asarray(image.mask, bool), requested)
         cpu["fit"] = cpu.get("fit", 0.0) + time.process_time() - c0
         for t in tasks:
             t["shared_maps"] = maps

@@ -179,7 +179,7 @@ def test_a_precision_read_off_an_unconverged_posterior_does_not_stop_the_loop():
 
 
 def test_a_view_with_fewer_curve_draws_pairs_them_with_their_own_m50():
-    # package_fitter reads the precision off 1000 draws of m50 but evaluates the design's curves for 400 draws
+    # package_fitter reads the precision off 1000 draws of m50 but evaluates the design's curves for 200 draws
     # (the costliest part of a refit); the design must pair each curve with its own draw's m50, and the
     # precision must come from the 1000.
     from comest_bayes.inject.design import design_from_draws
@@ -200,3 +200,67 @@ def test_a_view_with_fewer_curve_draws_pairs_them_with_their_own_m50():
     assert not reached and np.array_equal(nxt.prob, expected.prob)
     # without curve_m50 the curves and m50 are the same draws, as before
     assert PosteriorView(grid=grid, curves=curves, m50=sub).paired_m50 is sub
+
+
+# --------------------------------------------------------------------------- the design fits' schedule
+
+
+class _FakePosterior:
+    """What package_fitter reads of a posterior: draws of m50 and of the image-average curve, and its spec."""
+
+    def __init__(self, spec):
+        self.spec = spec
+        self.names = ["m50"]
+        self.samples = np.full((4, 1), 24.0)
+        self.meta = {"tau": None}
+
+    def magnitudes_at(self, levels, nsamples=1000):
+        return {0.5: 24.0 + 0.01 * np.linspace(-1.0, 1.0, nsamples)}
+
+    def average_curve(self, grid, nsamples=1000):
+        shift = 0.01 * np.linspace(-1.0, 1.0, nsamples)[:, None]
+        return 1.0 / (1.0 + np.exp((np.asarray(grid)[None, :] - 24.0 - shift) / 0.2))
+
+
+@pytest.mark.parametrize("defer", [True, False])
+def test_the_design_defers_the_selection_to_four_times_the_pilot_and_refits_warm_in_between(monkeypatch, defer):
+    # the schedule of package_fitter with a selection ("auto"): the pilot fits the design rung (richards_depth,
+    # the most flexible non-spline rung) from scratch, the next batches refit it warm, and the candidates are
+    # first compared once the outcomes reach reselect (4) x the pilot, then again at 4x that comparison; with
+    # defer_selection=False the pilot is compared (the earlier schedule).  fit_kind is replaced by a recorder:
+    # what is asserted is which model each call asks for and whether it starts warm.
+    from astropy.table import Table
+
+    from comest_bayes.bayes.fit import FitEntry
+    from comest_bayes.bayes.spec import load_spec
+    from comest_bayes.pipeline import adaptive as A
+
+    calls = []
+
+    def fake_fit_kind(table, *, requested, warm, width_test, map_starts, **kw):
+        spec = load_spec(requested)
+        chosen = load_spec("spline_depth") if spec.is_selection else spec
+        calls.append((len(table), spec.name, warm is not None, width_test, map_starts))
+        return _FakePosterior(chosen), FitEntry(name=chosen.name, requested=spec.name)
+
+    monkeypatch.setattr(A, "fit_kind", fake_fit_kind)
+    assert A.design_rung("auto").name == "richards_depth"
+    noise, mask = np.ones((8, 8), np.float32), np.zeros((8, 8), bool)
+    fit = A.package_fitter(image_shape=(8, 8), noise=noise, mask=mask, lo=22.0, hi=26.0, seed=1, model="auto",
+                           defer_selection=defer)
+    for n in (1000, 1500, 2250, 3375, 5062, 7593, 11390, 17085, 25627):
+        view, (post, entry) = fit(Table({"mag": np.full(n, 24.0), "detected": np.ones(n, bool)}), len(calls))
+        assert view.m50_halfwidth > 0 and entry.warm_refit == calls[-1][2]
+    asked = [(n, name, warm) for n, name, warm, _, _ in calls]
+    if defer:
+        assert asked[:5] == [(1000, "richards_depth", False), (1500, "richards_depth", True),
+                             (2250, "richards_depth", True), (3375, "richards_depth", True), (5062, "auto", False)]
+        first = 5062
+    else:
+        assert asked[:2] == [(1000, "auto", False), (1500, "spline_depth", True)]
+        first = 1000
+    compared = [n for n, name, warm in asked if name == "auto"]
+    assert compared[0] == first and all(b >= 4 * a for a, b in zip(compared, compared[1:]))
+    assert all(warm for n, name, warm in asked if name not in ("auto",) and n != 1000)
+    # the design's comparisons run the positional-width test; its one-model fits from scratch take 2 MAP starts
+    assert {c[3] for c in calls} == {True} and {c[4] for c in calls} == {A.DESIGN_MAP_STARTS}
