@@ -141,13 +141,13 @@ def run_replicate(task: dict) -> dict:
     if task.get("min_ess") is not None:
         config = RunConfig(seed=task["fit_seed"], fit=FitConfig(min_ess=float(task["min_ess"])))
     load = os.getloadavg()[0] if hasattr(os, "getloadavg") else None
-    t0 = time.perf_counter()
+    t0, c0 = time.perf_counter(), time.process_time()
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
         post, entry = fit_kind(table, kind="point", quantity="completeness", requested=task["model"],
                                config=config, image_shape=scene.shape, noise=scene.noise, mask=scene.mask,
                                wcs_header=None, mag_range=(lo, hi), mag_centers=centers)
-    seconds = time.perf_counter() - t0
+    seconds, cpu_seconds = time.perf_counter() - t0, time.process_time() - c0
 
     t1 = time.perf_counter()
     tq = task["truth_q"]
@@ -181,7 +181,8 @@ def run_replicate(task: dict) -> dict:
         "truth": truth.name, "n": int(task["n"]), "rep": int(task["rep"]),
         "draw_seed": int(task["draw_seed"]), "fit_seed": int(task["fit_seed"]),
         "model": entry.get("name"), "rule": sel.get("rule"),
-        "seconds": round(seconds, 3), "query_seconds": round(query_seconds, 3), "load": load,
+        "width_p": (sel.get("width_test") or {}).get("p_value"),
+        "seconds": round(seconds, 3), "cpu_seconds": round(cpu_seconds, 3), "query_seconds": round(query_seconds, 3), "load": load,
         "worker_pid": os.getpid(), "worker_task": _WORKER_STATE["ntasks"],
         "n_detected": int(np.sum(table["detected"])),
         "posterior": posterior,
@@ -518,7 +519,7 @@ def main(argv=None) -> int:
                 tq = task["truth_q"]
                 med = m.get("median")
                 log(f"[{done}/{len(tasks)}] {task['key']}: {rec['model']} in {rec['seconds']:.1f} s "
-                    f"(+{rec['query_seconds']:.1f} s queries); m50 "
+                    f"({rec['cpu_seconds']:.1f} CPU-s; +{rec['query_seconds']:.1f} s queries); m50 "
                     + (f"{med:.4f} [{m['lo68']:.4f}, {m['hi68']:.4f}]" if med is not None else "undefined")
                     + f" truth {tq['m50']:.4f}, binned {_f(rec['binned']['m50'], '.4f', 7).strip()}")
         log(f"fits done in {time.perf_counter() - t_all:.0f} s wall")

@@ -28,9 +28,9 @@ def _outcomes(n, w_10, w_01, seed):
 # --------------------------------------------------------------------------- spec
 
 
-def test_width_order_adds_the_plane_and_its_prior():
+def test_width_order_adds_the_field_and_its_prior():
     spec = load_spec("spline_depth_width_uv")
-    assert spec.width_order == 1 and spec.uses_width_position and spec.uses_position and spec.is_spatial
+    assert spec.width_order == 2 and spec.uses_width_position and spec.uses_position and spec.is_spatial
     assert "w_uv" in spec.parameters()
     model = CompletenessModel(LW, compress_for(LW, *_outcomes(200, 0.0, 0.0, 0)))
     assert model.names == ["m50_0", "log_w", "logit_A", "logit_floor", "w_10", "w_01"]
@@ -66,7 +66,8 @@ def test_a_width_candidate_without_a_positional_width_is_refused():
 
 def test_rungs_with_and_without_a_positional_width_share_one_layout():
     lay = shared_layout(["logistic_depth", "spline_depth", "logistic_depth_width_uv", "spline_depth_width_uv"])
-    assert lay.structure.family == "flex" and lay.structure.n_wfield == 2 and lay.width_names == ["w_10", "w_01"]
+    assert lay.structure.family == "flex" and lay.structure.n_wfield == 5
+    assert lay.width_names == ["w_10", "w_01", "w_20", "w_11", "w_02"]
     with pytest.raises(ConfigError, match="width_order"):
         shared_layout([LW, ModelSpec(name="w2", width_order=2)])
 
@@ -154,7 +155,7 @@ def test_a_posterior_of_a_width_rung_saves_and_reloads(tmp_path):
                                  noise_grid=None, footprint=np.array([[10.0, 10.0], [50.0, 40.0]]), wcs_header=None,
                                  diagnostics={})
     again = CompletenessPosterior.load(post.save(tmp_path / "p.npz"))
-    assert again.spec.width_order == 1 and again.names == post.names
+    assert again.spec.width_order == 2 and again.names == post.names
     # the width follows the position: at u = +1 (x = 59) f at m50 + 0.3 is higher than at u = -1 (wider transition)
     f = again.completeness(24.3, np.array([0.0, 59.0]), np.array([25.0, 25.0]), nsamples=None)
     assert f.shape[-1] == 2 and np.all(f[..., 1] > f[..., 0])
