@@ -28,7 +28,7 @@ from comest_bayes.seeding import Stream, int_seed_for, rng_for
 from comest_bayes.bayes.selection import WIDTH_TEST_P, choose_tau, select_model, width_position_test
 
 __all__ = ["fit_kind", "FitEntry", "purity_outcomes", "warm_state", "shared_maps", "footprint_grid", "needs_smooth",
-           "may_escalate", "MIN_OUTCOMES", "MIN_CLASS"]
+           "MIN_OUTCOMES", "MIN_CLASS"]
 
 #: Fewer usable outcomes than this: the fit still runs but warns that the prior dominates.
 MIN_OUTCOMES = 20
@@ -200,14 +200,6 @@ def needs_smooth(requested: str) -> bool:
     return any(c.uses_position for c in (resolve_candidates(spec) if spec.is_selection else [spec]))
 
 
-def may_escalate(requested: str) -> bool:
-    """Whether a fit of ``requested`` may need position-resolved footprint cells it did not ask for upfront:
-    a selection with width candidates escalates to them when its width test fires (the cells
-    of :func:`footprint_grid` ``(True)`` are then built from the noise map)."""
-    spec = load_spec(requested)
-    return bool(spec.is_selection and resolve_width_candidates(spec))
-
-
 def footprint_histograms(noise: np.ndarray | None, mask: np.ndarray, requested) -> dict:
     """The footprint histograms the fits of ``requested`` models need, keyed by ``(ddepth, nuv)``.
 
@@ -234,8 +226,22 @@ def warm_state(post: CompletenessPosterior) -> dict:
             "tau": None if post.meta.get("tau") is None else float(post.meta["tau"])}
 
 
+def _on_demand(noise):
+    """``noise`` (an array, None, or a zero-argument loader of the array) as a function that gives the
+    array, calling a loader at most once and only when asked."""
+    if not callable(noise):
+        return lambda: noise
+    got = []
+
+    def get():
+        if not got:
+            got.append(noise())
+        return got[0]
+    return get
+
+
 def fit_kind(outcomes: Table, *, kind: str, quantity: str, requested: str, config: RunConfig, image_shape,
-             noise: np.ndarray, mask: np.ndarray, wcs_header: str | None, mag_range, mag_centers,
+             noise, mask: np.ndarray, wcs_header: str | None, mag_range, mag_centers,
              outcome_column: str = "detected", footprint_points=None, warm: dict | None = None,
              footprints: dict | None = None, noise_grid: np.ndarray | None = None,
              products: bool = True, width_test: bool = True, map_starts: int = 6,
@@ -251,8 +257,14 @@ def fit_kind(outcomes: Table, *, kind: str, quantity: str, requested: str, confi
         Source kind and ``"completeness"`` or ``"purity"`` (names the seed stream).
     requested : str
         Spec name or path, or a selection spec such as ``auto``.
-    noise, mask : ndarray
-        Detection noise map and mask of the image (depth covariate, footprint).
+    noise : ndarray, or a callable returning it
+        Detection noise map of the image (depth covariate, footprint).  A
+        zero-argument callable is called only when a footprint histogram or
+        the noise grid must be computed here (not given in ``footprints`` /
+        ``noise_grid``): e.g. when a selection escalates to a positional
+        width, whose position-resolved cells a run does not compute upfront.
+    mask : ndarray
+        Mask of the image.
     footprint_points : (x, y, noise) arrays, optional
         Average over these positions instead of every unmasked pixel of the
         maps (:meth:`Footprint.from_points`; e.g. the injections themselves
@@ -293,6 +305,7 @@ def fit_kind(outcomes: Table, *, kind: str, quantity: str, requested: str, confi
         The posterior (not yet saved) and its ``summary.json`` entry (:meth:`FitEntry.to_dict`).
     """
     t0 = time.perf_counter()
+    noise = _on_demand(noise)
     spec = load_spec(requested)
     n_rows = len(outcomes)
     if n_rows == 0:
@@ -326,13 +339,14 @@ def fit_kind(outcomes: Table, *, kind: str, quantity: str, requested: str, confi
                                          nuv=grid[1])
         hist = (footprints or {}).get(grid)
         if hist is None:
-            if noise is None:
+            noise_map = noise()
+            if noise_map is None:
                 # a histogram without the noise map would put every pixel at the reference depth: an image
                 # average that silently ignores the depth field
                 raise InputError(f"fit_kind: the {kind} {quantity} fit needs the footprint cells {grid} (ddepth, nuv), "
                                  "which are neither in `footprints` nor computable without the noise map; pass "
                                  "`noise` (or the histogram in `footprints`).")
-            hist = FootprintHistogram.from_maps(noise, mask, ddepth=grid[0], nuv=grid[1])
+            hist = FootprintHistogram.from_maps(noise_map, mask, ddepth=grid[0], nuv=grid[1])
             if footprints is not None:
                 footprints[grid] = hist  # the caller's next fit with this dict reuses the pass
         return Footprint.from_histogram(hist, data.meta.get("sigma_ref"))
@@ -416,7 +430,7 @@ def fit_kind(outcomes: Table, *, kind: str, quantity: str, requested: str, confi
               "image_shape": tuple(int(v) for v in image_shape), "mag_range": [mag_lo, mag_hi],
               "injected_range": injected, "depth_range": [float(np.min(cov.depth)), float(np.max(cov.depth))],
               "kind": kind, "quantity": quantity, "tau": model.tau},
-        noise_grid=coarse_noise_map(noise, mask) if noise_grid is None else noise_grid, footprint=footprint_sample(mask, 2000, rng_for(seed, Stream.FOOTPRINT)),
+        noise_grid=coarse_noise_map(noise(), mask) if noise_grid is None else noise_grid, footprint=footprint_sample(mask, 2000, rng_for(seed, Stream.FOOTPRINT)),
         wcs_header=wcs_header, diagnostics={"sampler": diagnostics, "selection": selection, "warnings": warn},
         cells=cells,
     )

@@ -19,8 +19,7 @@ import numpy as np
 from astropy.io import fits
 from astropy.table import Table
 
-from comest_bayes.bayes.fit import (MIN_CLASS, FitEntry, fit_kind, footprint_grid, may_escalate, needs_smooth,
-                                    purity_outcomes)
+from comest_bayes.bayes.fit import MIN_CLASS, FitEntry, fit_kind, purity_outcomes
 from comest_bayes.bayes.model import padded_size, padding_floor
 from comest_bayes.bayes.outcomes import compress_for, covariates_from_outcomes
 from comest_bayes.bayes.spec import load_spec
@@ -55,11 +54,10 @@ def fit_task(task: dict) -> tuple:
         return None, FitEntry(name=None, requested=task["requested"], cpu_seconds=0.0, skipped=skipped)
     shared = task.get("shared_maps") or {}
     footprints, noise_grid = shared.get("footprints") or {}, shared.get("noise_grid")
-    # the noise map is only read when the run did not pass the footprint histogram this fit needs and the grid,
-    # or when a selection may escalate to a positional width (whose cells are then built from the map)
-    have = (footprint_grid(needs_smooth(task["requested"])) in footprints and noise_grid is not None
-            and not may_escalate(task["requested"]))
-    noise = None if have else fits.getdata(run / layout.NOISE).astype(np.float32)
+    # the noise map is read only if the fit needs a footprint histogram or grid the run did not pass (e.g. the
+    # position-resolved cells of an escalated width selection)
+    def noise():
+        return fits.getdata(run / layout.NOISE).astype(np.float32)
     mask = fits.getdata(run / layout.MASK).astype(bool)
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")

@@ -126,3 +126,29 @@ def test_an_escalated_width_selection_in_a_run_averages_over_the_noise_map(tmp_p
     with pytest.raises(Exception, match="needs the footprint cells"):
         fit_kind(table, noise=None, mask=mask, footprints=fresh["footprints"], noise_grid=fresh["noise_grid"],
                  **common)
+
+
+def test_a_fit_reads_the_noise_map_only_when_it_must():
+    # fit_kind takes the noise map as a loader and calls it only for footprint cells or a noise grid it is
+    # not handed: a run's fits that get the shared maps never read noise.fits, a fit without them reads it once
+    from comest_bayes.bayes.fit import fit_kind, shared_maps
+
+    shape = (100, 200)
+    noise_map, mask = np.ones(shape, np.float32), np.zeros(shape, bool)
+    calls = []
+
+    def loader():
+        calls.append(1)
+        return noise_map
+
+    edges = np.arange(21.0, 27.01, 0.1)
+    common = dict(kind="point", quantity="completeness", requested="logistic", config=load_config(),
+                  image_shape=shape, wcs_header=None, mag_range=(21.0, 27.0),
+                  mag_centers=0.5 * (edges[:-1] + edges[1:]), mask=mask)
+    maps = shared_maps(noise_map, mask, ["logistic"])
+    _, given = fit_kind(_logistic_outcomes(600), noise=loader, footprints=maps["footprints"],
+                        noise_grid=maps["noise_grid"], **common)
+    assert calls == []
+    _, read = fit_kind(_logistic_outcomes(600), noise=loader, **common)
+    assert calls == [1]  # the histogram and the grid share one read
+    assert given.magnitudes["m50"]["median"] == read.magnitudes["m50"]["median"]
