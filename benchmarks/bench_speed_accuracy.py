@@ -312,9 +312,9 @@ def auto_estimate(rows: Table, *, seed: int, wide, maps: dict, mag_range) -> dic
 
     ``rows``: the subset's rows of the run's outcome table, every column (``fit_task`` reads the
     whole table).  The footprint histograms and noise grid come from ``maps`` (:func:`run_maps`),
-    as ``shared_maps`` hands them to ``fit_task``; the noise map is passed as well, as ``fit_task``
-    does for a selection that may escalate to a positional width (whose cells it then builds).  Returns the curves of the footprint average on
-    ``wide``, their m50, the CPU seconds (the fit, the summary draws and the one pass over the
+    as ``shared_maps`` hands them to ``fit_task``; the noise map is passed as well (``fit_task``
+    hands it over as a loader): an escalated width selection builds its position cells from it.
+    Returns the curves of the footprint average on ``wide``, their m50, the CPU seconds (the fit, the summary draws and the one pass over the
     maps a run makes), the chosen model and the selection table.
     """
     from comest_bayes.config import RunConfig
