@@ -244,7 +244,7 @@ def fit_kind(outcomes: Table, *, kind: str, quantity: str, requested: str, confi
              noise, mask: np.ndarray, wcs_header: str | None, mag_range, mag_centers,
              outcome_column: str = "detected", footprint_points=None, warm: dict | None = None,
              footprints: dict | None = None, noise_grid: np.ndarray | None = None,
-             products: bool = True, width_test: bool = True, map_starts: int = 6,
+             products: bool = True, map_starts: int = 6,
              log=lambda s: None) -> tuple[CompletenessPosterior, FitEntry]:
     """Fit (or select and fit) the model of one kind and quantity.
 
@@ -290,10 +290,6 @@ def fit_kind(outcomes: Table, *, kind: str, quantity: str, requested: str, confi
         shape check).  False for a fit whose posterior is only queried by its caller (the adaptive
         design's refits): the entry then has empty ``magnitudes`` and ``curve`` and no
         ``shape_check``; the posterior is the same.
-    width_test : bool, default True
-        With a selection: run the positional-width score test of the chosen rung and escalate when
-        it fires (docs/bayesian.md).  False skips it (the adaptive design's fits, which aim at the
-        image-average curve; the run's own fit after the design keeps the test).
     map_starts : int, default 6
         Optimizer starts of the MAP of one model fitted from scratch (not a selection, not a warm
         refit; :func:`comest_bayes.bayes.inference.fit_map`): the adaptive design's pilot of its
@@ -364,7 +360,7 @@ def fit_kind(outcomes: Table, *, kind: str, quantity: str, requested: str, confi
         chosen_spec = next(c for c in candidates if c.name == sel.chosen)
         tested = None
         width_cands = resolve_width_candidates(spec)
-        if width_test and width_cands and not chosen_spec.uses_position and "uv" in (meta.get("available") or ()):
+        if width_cands and not chosen_spec.uses_position and "uv" in (meta.get("available") or ()):
             # the width test of the chosen rung: one Jacobian of its cells, no refit (docs/bayesian.md,
             # "Positional width"); only a scene whose width differs across the image pays for position
             test = width_position_test(sel.models[sel.chosen], sel.fits[sel.chosen].map.theta, cov.u, cov.v,

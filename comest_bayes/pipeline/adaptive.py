@@ -347,7 +347,7 @@ def design_rung(spec):
 def package_fitter(*, image_shape, noise, mask, lo: float, hi: float, seed: int, model: str = "auto",
                    kind: str = "point", ngrid: int = 121, nsamples: int = 1000, mag_bin: float = 0.1,
                    reselect: float = 4.0, magnitudes=(), maps: dict | None = None, design_samples: int = 200,
-                   width_test: bool = True, defer_selection: bool = True):
+                   defer_selection: bool = True):
     """A ``fit`` callable for :func:`run_sequential` that runs the package's own completeness fit.
 
     Each call fits every outcome so far with :func:`comest_bayes.bayes.fit.fit_kind`
@@ -366,9 +366,8 @@ def package_fitter(*, image_shape, noise, mask, lo: float, hi: float, seed: int,
     (:func:`comest_bayes.bayes.fit.warm_state`: Newton steps from its median,
     the spline's smoothness kept), which costs a fraction of a selection.  A
     comparison runs the positional-width test of the package's fit and
-    escalates when it fires (``width_test=False`` skips it: cheaper, but on a
-    scene whose width varies across the image the design's m50 then carries
-    the misfit).  Why a selection is deferred and what it costs:
+    escalates when it fires (without it, on a scene whose width varies
+    across the image, the design's m50 carried the misfit).  Why a selection is deferred and what it costs:
     ``docs/adaptive.md``.
 
     ``maps``: :func:`comest_bayes.bayes.fit.shared_maps` of ``noise`` and
@@ -412,7 +411,7 @@ def package_fitter(*, image_shape, noise, mask, lo: float, hi: float, seed: int,
                                    image_shape=image_shape, noise=noise, mask=mask, wcs_header=None,
                                    mag_range=(lo, hi), mag_centers=centers, warm=warm,
                                    footprints=state["maps"]["footprints"], noise_grid=state["maps"]["noise_grid"],
-                                   products=False, width_test=width_test, map_starts=DESIGN_MAP_STARTS)
+                                   products=False, map_starts=DESIGN_MAP_STARTS)
             m50 = post.magnitudes_at((0.5,), nsamples=nsamples)[0.5]
             if len(magnitudes):  # the precision on f is read off the curves: all the draws
                 curves, curve_m50 = post.average_curve(grid, nsamples=nsamples), None

@@ -237,10 +237,10 @@ def test_the_design_defers_the_selection_to_four_times_the_pilot_and_refits_warm
 
     calls = []
 
-    def fake_fit_kind(table, *, requested, warm, width_test, map_starts, **kw):
+    def fake_fit_kind(table, *, requested, warm, map_starts, **kw):
         spec = load_spec(requested)
         chosen = load_spec("spline_depth") if spec.is_selection else spec
-        calls.append((len(table), spec.name, warm is not None, width_test, map_starts))
+        calls.append((len(table), spec.name, warm is not None, map_starts))
         return _FakePosterior(chosen), FitEntry(name=chosen.name, requested=spec.name)
 
     monkeypatch.setattr(A, "fit_kind", fake_fit_kind)
@@ -251,7 +251,7 @@ def test_the_design_defers_the_selection_to_four_times_the_pilot_and_refits_warm
     for n in (1000, 1500, 2250, 3375, 5062, 7593, 11390, 17085, 25627):
         view, (post, entry) = fit(Table({"mag": np.full(n, 24.0), "detected": np.ones(n, bool)}), len(calls))
         assert view.m50_halfwidth > 0 and entry.warm_refit == calls[-1][2]
-    asked = [(n, name, warm) for n, name, warm, _, _ in calls]
+    asked = [(n, name, warm) for n, name, warm, _ in calls]
     if defer:
         assert asked[:5] == [(1000, "richards_depth", False), (1500, "richards_depth", True),
                              (2250, "richards_depth", True), (3375, "richards_depth", True), (5062, "auto", False)]
@@ -262,5 +262,5 @@ def test_the_design_defers_the_selection_to_four_times_the_pilot_and_refits_warm
     compared = [n for n, name, warm in asked if name == "auto"]
     assert compared[0] == first and all(b >= 4 * a for a, b in zip(compared, compared[1:]))
     assert all(warm for n, name, warm in asked if name not in ("auto",) and n != 1000)
-    # the design's comparisons run the positional-width test; its one-model fits from scratch take 2 MAP starts
-    assert {c[3] for c in calls} == {True} and {c[4] for c in calls} == {A.DESIGN_MAP_STARTS}
+    # the design's one-model fits from scratch take 2 MAP starts
+    assert {c[3] for c in calls} == {A.DESIGN_MAP_STARTS}
