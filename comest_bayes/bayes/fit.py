@@ -374,8 +374,12 @@ def fit_kind(outcomes: Table, *, kind: str, quantity: str, requested: str, confi
                 quantities = targeted_quantities(cells, probes, mag_lo, mag_hi)
                 # the chosen rung starts from its MAP on the coarser cells (the same parameters)
                 warm_from = (list(sel.models[sel.chosen].names), sel.fits[sel.chosen].map.theta)
+                # the magnitude shape's smoothness was chosen by the evidence on these outcomes already: the
+                # chosen spline rung keeps it on the finer cells, and so does the spline rung with a width field
+                first_tau = sel.models[sel.chosen].tau if chosen_spec.link == "spline" else None
+                keep = {c.name: first_tau for c in candidates if c.link == "spline"} if first_tau else None
                 sel = select_model(data, candidates, seed=seed, quantities=quantities, mag_edges=edges,
-                                   start=warm_from)
+                                   start=warm_from, taus=keep)
                 chosen_spec = next(c for c in candidates if c.name == sel.chosen)
                 tested["first_selection"] = first
                 log(f"fit: {kind} {quantity}: the width varies across the image (score test p = "

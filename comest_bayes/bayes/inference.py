@@ -14,6 +14,7 @@ import warnings
 from dataclasses import dataclass, field
 
 import numpy as np
+from scipy.linalg import solve_triangular
 from scipy.optimize import minimize
 
 from comest_bayes.errors import InputError
@@ -792,18 +793,32 @@ class ImportanceDiagnostics:
 
 
 def _t_draws(model, mean, cov, df, ndraws, rng):
-    """Student-t proposal draws, their log posterior and raw log importance weights (unsmoothed)."""
-    d = mean.size
+    """Student-t proposal draws and their log posterior (-inf where undefined)."""
     chol = np.linalg.cholesky(cov)
-    z = rng.standard_normal((ndraws, d))
+    z = rng.standard_normal((ndraws, mean.size))
     chi2 = rng.chisquare(df, size=ndraws)
-    scale = np.sqrt(df / chi2)
-    draws = mean + (z @ chol.T) * scale[:, None]
-    # log density of the t proposal up to its constant (which cancels on normalising)
-    log_q = -0.5 * (df + d) * np.log1p(np.sum(z * z, axis=1) * scale ** 2 / df)
+    draws = mean + (z @ chol.T) * np.sqrt(df / chi2)[:, None]
     log_p = log_prob_rows(model, draws)
     log_p[~np.isfinite(log_p)] = -np.inf
-    return draws, log_p, log_p - log_q
+    return draws, log_p
+
+
+def _mixture_log_q(x, components, df):
+    """Log density at ``x`` (N, d) of the mixture of t proposals ``[mean, chol, n]`` weighted by their n.
+
+    Constants shared by every component (same ``df`` and dimension) are dropped: they cancel when the
+    importance weights are normalised.
+    """
+    d = x.shape[1]
+    total = sum(c[2] for c in components)
+    terms = []
+    for mean, chol, n in components:
+        z = solve_triangular(chol, (x - mean).T, lower=True)
+        maha = np.sum(z * z, axis=0)
+        terms.append(math.log(n / total) - np.sum(np.log(np.diag(chol))) - 0.5 * (df + d) * np.log1p(maha / df))
+    terms = np.stack(terms)
+    top = np.max(terms, axis=0)
+    return top + np.log(np.sum(np.exp(terms - top), axis=0))
 
 
 def _psis(lw_raw):
@@ -844,13 +859,17 @@ def importance_posterior(model, lap: LaplaceResult, *, seed: int, ndraws: int = 
     * **Moment matching** (``adapt``) when the proposal's shape is wrong
       (k-hat above 0.5): draw afresh from a t with the importance-weighted
       mean and covariance of the last round (at most :data:`ADAPT_ROUNDS`
-      times); this recovers most of what a skewed posterior costs.
+      times); this recovers most of what a skewed posterior costs.  The
+      draws of every round are kept: each is weighted against the mixture
+      of all proposals so far (multiple importance sampling with the
+      balance heuristic, Veach & Guibas 1995), so a matched round adds to
+      the earlier draws rather than replacing them.
     * **Pooling** when the shape is right but the effective sample size is
-      short of ``min_ess``: add draws from the *same* proposal (as many as
-      the current efficiency says are missing, +10%, at least ``ndraws / 2``)
+      short of ``min_ess``: add draws from the last proposal (as many as
+      the current efficiency says are missing, +10%, at least ``ndraws / 4``)
       until it is reached, unless that would take more than ``max_draws``
-      (the pooled draws are one sample of that proposal, so their weights
-      are simply concatenated and smoothed again).
+      (they raise that proposal's share of the mixture, and all weights
+      are smoothed again).
 
     The Pareto k-hat of the final weights says whether the result can be
     trusted: at or below :data:`IS_KHAT_MAX` (0.7) the importance-sampling
@@ -893,13 +912,27 @@ def importance_posterior(model, lap: LaplaceResult, *, seed: int, ndraws: int = 
     rng = rng_for(seed, Stream.IMPORTANCE)
     max_draws = max(int(ndraws), IS_MAX_DRAWS if max_draws is None else int(max_draws))
     mean, cov = lap.mean, lap.cov * inflate ** 2
-    evaluations = 0
+    # every round's draws are kept and weighted against the mixture of the proposals they came from
+    # (the balance heuristic of multiple importance sampling): a moment-matched round adds to the draws
+    # before it instead of replacing them, so no evaluation is thrown away
+    components, draw_sets, logp_sets = [], [], []
+
+    def weigh():
+        x, lp = np.concatenate(draw_sets), np.concatenate(logp_sets)
+        return x, lp, lp - _mixture_log_q(x, components, df)
+
     for round_ in range(1 + ADAPT_ROUNDS * int(adapt)):
-        draws, log_p, lw_raw = _t_draws(model, mean, cov, df, ndraws, rng)
-        evaluations += ndraws
+        x, lp = _t_draws(model, mean, cov, df, ndraws, rng)
+        components.append([mean, np.linalg.cholesky(cov), ndraws])
+        draw_sets.append(x)
+        logp_sets.append(lp)
+        draws, log_p, lw_raw = weigh()
         w, ess, khat = _psis(lw_raw)
-        if round_ < ADAPT_ROUNDS and adapt and khat > 0.5 and ess > 2 * lap.mean.size:
-            # moment matching: the weighted mean and covariance of this round are a better proposal
+        # the shape of this round's proposal is judged on its own draws (the mixture keeps the tails of
+        # earlier, worse proposals in its k-hat)
+        own_khat = khat if round_ == 0 else _psis(lp - _mixture_log_q(x, components[-1:], df))[2]
+        if round_ < ADAPT_ROUNDS and adapt and own_khat > 0.5 and ess > 2 * lap.mean.size:
+            # moment matching: the weighted mean and covariance of the draws so far are a better proposal
             # than the Laplace Gaussian when the posterior is skewed
             new_mean = w @ draws
             dev = draws - new_mean
@@ -912,21 +945,22 @@ def importance_posterior(model, lap: LaplaceResult, *, seed: int, ndraws: int = 
             mean, cov = new_mean, new_cov
         else:
             break
-    # pooling: more draws from the same proposal while the weights are trustworthy but too few are effective,
-    # at least half a batch at a time and otherwise as many as the current efficiency says are missing (+10%);
-    # no pooling when even max_draws would fall short at that efficiency
+    # pooling: more draws from the last proposal while the weights are trustworthy but too few are effective,
+    # at least a quarter of a batch at a time and otherwise as many as the current efficiency says are missing
+    # (+10%); no pooling when even max_draws would fall short at that efficiency
     while ess < min_ess and khat <= IS_KHAT_MAX:
         have = draws.shape[0]
         need = int(math.ceil(1.1 * have * min_ess / max(ess, 1e-12)))
-        step = max(ndraws // 2, 1, need - have)
+        step = max(ndraws // 4, 1, need - have)
         if need > max_draws or have + step > max_draws:
             break
-        more, more_p, more_lw = _t_draws(model, mean, cov, df, step, rng)
-        evaluations += step
-        draws = np.concatenate([draws, more])
-        log_p = np.concatenate([log_p, more_p])
-        lw_raw = np.concatenate([lw_raw, more_lw])
+        x, lp = _t_draws(model, components[-1][0], components[-1][1] @ components[-1][1].T, df, step, rng)
+        components[-1][2] += step
+        draw_sets.append(x)
+        logp_sets.append(lp)
+        draws, log_p, lw_raw = weigh()
         w, ess, khat = _psis(lw_raw)
+    evaluations = draws.shape[0]
     issued = []
     # systematic resampling: nout equally spaced points through the cumulative weights
     u = (rng.random() + np.arange(nout)) / nout

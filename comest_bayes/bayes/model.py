@@ -263,10 +263,14 @@ _jit_prob_m50_batch = stored_jit(_prob_m50_batch, 0, sources=_SOURCES)
 #: log_prob_batch vectorises over at most this many (walker, cell) pairs at once.
 BATCH_ELEMENTS = 1 << 20
 
+#: From this many cells on, :func:`padded_size` grows in quarter steps (of the power of two below).
+LARGE_PAD = 4096
+
 #: Cell counts are padded up to the next of these sizes (cells with n = 0), so that data sets of
 #: similar size share one compiled likelihood: the steps waste at most a third of the work.
 def padded_size(g: int) -> int:
-    """Smallest of 256, 384, 512, 768, 1024, 1536, ... (``256 * 2^j`` and ``384 * 2^j``) that holds ``g`` cells.
+    """Smallest of 256, 384, 512, 768, 1024, 1536, ..., 4096 (``256 * 2^j`` and ``384 * 2^j``), then 5120,
+    6144, 7168, 8192, 10240, ... (quarters of the power of two below) that holds ``g`` cells.
 
     Steps of 1.5 and 4/3 rather than finer ones: a process loads each compiled program once (25-45 ms
     each, some fifteen per model layout), so data sets of similar size should share one size.  Against
@@ -277,7 +281,12 @@ def padded_size(g: int) -> int:
     """
     size = 256
     while size < g:
-        size = size * 3 // 2 if size & (size - 1) == 0 else size * 4 // 3
+        if size >= LARGE_PAD:
+            # large cell counts (position-resolved fits): steps of a quarter of the power of two below, so
+            # that at most a fifth of the work is padding; their programs are traced once per fit anyway
+            size += (1 << (size.bit_length() - 1)) // 4
+        else:
+            size = size * 3 // 2 if size & (size - 1) == 0 else size * 4 // 3
     floor = _PAD_FLOOR[0]
     if size < floor:
         pow2 = 256

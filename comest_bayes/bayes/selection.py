@@ -493,7 +493,7 @@ def select_model(data, candidates, *, seed: int, margin: float = 4.0, margin_se:
                  min_ess: float = 400, max_steps: int = 20000, chunk: int = 500, nwalkers: int | None = None,
                  nstarts: int = 2, moves="de", loo_draws: int | None = 1000, model_factory=None,
                  progress: bool = False, scoring: str = "laplace", quantities=None, mag_edges=None,
-                 adequacy_fraction: float = ADEQUACY_FRACTION, start=None) -> SelectionResult:
+                 adequacy_fraction: float = ADEQUACY_FRACTION, start=None, taus=None) -> SelectionResult:
     r"""Fit candidate models (simplest first) and keep the simplest adequate one as good as the best.
 
     **Scoring** (``scoring="laplace"``, the default): every candidate gets a
@@ -569,6 +569,12 @@ m SE}_\Delta)` nats).  If no adequate candidate is
     start : (names, theta), optional
         A MAP of another fit (e.g. of the first candidate on other cells) that the first candidate
         starts from (:meth:`CompletenessModel.warm_start`); the later ones start from the rung below.
+        When the first candidate has the same parameters as ``start`` (the same model on other
+        cells), its MAP is one Newton refinement from it.
+    taus : dict, optional
+        ``{candidate name: tau}``: spline rungs named here keep that smoothness scale (one MAP)
+        instead of choosing it by :func:`choose_tau` (four); e.g. a scale an earlier selection on
+        the same outcomes already chose.  Their table rows carry ``tau`` and an empty ``tau_table``.
 
     Returns
     -------
@@ -627,12 +633,21 @@ m SE}_\Delta)` nats).  If no adequate candidate is
             eq_draws = draws[np.linspace(0, len(draws) - 1, min(len(draws), 400)).astype(int)]
         else:
             start = model.warm_start(*prev) if prev is not None and hasattr(model, "warm_start") else None
-            if getattr(spec, "link", None) == "spline" and getattr(spec, "spline_tau", None) == "evidence":
+            # the same parameters' MAP on other cells of the same outcomes (an escalated selection's first
+            # rung): a Newton refinement from it, not a search from scratch
+            refine = start is not None and list(prev[0]) == list(model.names)
+            map_kw = dict(nstarts=1, method="newton") if refine else dict(nstarts=nstarts)
+            if getattr(spec, "link", None) == "spline" and (taus or {}).get(name) is not None:
+                model.tau = float(taus[name])
+                mp = fit_map(model, seed=cseed, start=start, **map_kw)
+                info["tau"] = float(model.tau)
+                info["tau_table"] = []
+            elif getattr(spec, "link", None) == "spline" and getattr(spec, "spline_tau", None) == "evidence":
                 tau, mp, tau_table = choose_tau(model, seed=cseed, start=start)
                 info["tau"] = tau
                 info["tau_table"] = tau_table
             else:
-                mp = fit_map(model, nstarts=nstarts, seed=cseed, start=start)
+                mp = fit_map(model, seed=cseed, start=start, **map_kw)
             lap = laplace(model, mp.theta)
             result = FitResult(map=mp, laplace=lap, posterior=None, seconds=0.0)
             loos[name] = loo_laplace(model, mp.theta, lap.cov)

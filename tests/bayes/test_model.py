@@ -318,9 +318,12 @@ def test_padded_sizes_hold_the_cells_and_waste_at_most_a_third():
 
     assert [padded_size(g) for g in (1, 256, 257, 385, 673, 731, 769, 1025, 1537)] == \
         [256, 256, 384, 512, 768, 768, 1024, 1536, 2048]
-    for g in range(257, 20000, 7):
+    # from 4096 on, quarter steps: a position-resolved fit's 6145 cells take 7168, not 8192
+    assert [padded_size(g) for g in (4096, 4097, 6145, 8193, 16385)] == [4096, 5120, 7168, 10240, 20480]
+    for g in range(257, 40000, 7):
         size = padded_size(g)
         assert g <= size <= 1.5 * g  # above 256 the steps are x1.5 and x4/3
+        assert g <= 4096 or size <= 1.25 * g  # above 4096 at most a fifth of the cells are padding
         assert padded_size(size) == size
 
 

@@ -282,3 +282,33 @@ def test_a_level_no_candidate_reaches_does_not_make_the_simple_candidates_inadeq
     assert simple["adequate"] == expected
     assert expected, res.format_table()  # on this plateau the simple rung agrees with the spline
     assert res.chosen == "logistic_depth"
+
+
+def test_a_smoothness_handed_in_is_kept_and_a_same_model_start_is_refined():
+    # An escalated selection refits the first selection's chosen spline rung on finer cells of the same
+    # outcomes: it hands in the smoothness already chosen by the evidence (`taus`) and that rung's MAP
+    # (`start`).  The rung must keep that tau (no evidence search: an empty tau table) and reach the same
+    # optimum as a search from scratch at that tau (log posterior within 1e-3 nats, the optimizer's tolerance).
+    from comest_bayes.bayes.model import CompletenessModel
+    from comest_bayes.bayes.outcomes import Covariates, compress_for
+    from comest_bayes.bayes.spec import load_spec
+
+    rng = np.random.default_rng(41)
+    n = 2000
+    m = rng.uniform(21.0, 26.0, n)
+    det = rng.random(n) < 1.0 / (1.0 + np.exp((m - 23.5) / 0.25)) ** 0.5  # skewed: a Richards-like truth
+    cov = Covariates.make(m, depth=0.0)
+    coarse = compress_for(["spline_depth"], cov, det, dm=0.1)
+    fine = compress_for(["spline_depth"], cov, det, dm=0.02)
+    first = select_model(coarse, ["spline_depth"], seed=3)
+    tau = first.table[0]["tau"]
+    assert len(first.table[0]["tau_table"]) > 1  # the first selection searched the scales
+    warm = (list(first.models["spline_depth"].names), first.fits["spline_depth"].map.theta)
+    res = select_model(fine, ["spline_depth"], seed=3, start=warm, taus={"spline_depth": tau})
+    row = res.table[0]
+    assert row["tau"] == tau and row["tau_table"] == []
+    assert res.models["spline_depth"].tau == tau
+    ref = CompletenessModel(load_spec("spline_depth"), fine)
+    ref.tau = tau
+    scratch = fit_map(ref, seed=3, nstarts=2)
+    assert abs(res.fits["spline_depth"].map.log_prob - scratch.log_prob) < 1e-3
