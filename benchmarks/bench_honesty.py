@@ -26,7 +26,10 @@ one) and every number of injections N (3000, 30000, 300000 by default, with
 Per truth and N it then reports the empirical coverage of the 68% and 95%
 intervals against the exact image-average truth, with the binomial 99% range
 of the nominal level for that number of replicates; the mean bias and its
-standard error; the mean posterior sd and |bias| / sd; the RMSE of the
+standard error (empirical, and ``se_p`` = mean posterior sd / sqrt(R): a few
+replicates can scatter far less than a calibrated posterior's sd by chance, and
+an empirical se alone then makes a chance mean look resolved); the mean
+posterior sd and |bias| / sd; the RMSE of the
 posterior median and of the binned estimate (m50 and the curve); and the fit
 wall time.  A calibrated posterior has coverages inside the bands at every N;
 a model whose form cannot follow the truth shows coverage falling with N while
@@ -282,6 +285,11 @@ def summarise(records: list, truths: dict) -> dict:
                 res["bias"] = float(err.mean())
                 res["bias_se"] = float(err.std(ddof=1) / math.sqrt(len(err))) if len(err) > 1 else None
                 res["sd_mean"] = float(sd.mean())
+                # the se of the mean error if the replicates scatter by the posterior sd (a calibrated
+                # posterior's do): the empirical se of a few replicates can be far smaller by chance
+                # (results/honesty_width_uv/bias300/: 300k width_varies, replicates 0-7)
+                res["bias_se_post"] = float(sd.mean() / math.sqrt(len(err)))
+                res["spread_over_sd"] = float(err.std(ddof=1) / sd.mean()) if len(err) > 1 and sd.mean() > 0 else None
                 res["abs_bias_over_sd"] = float(abs(err.mean()) / sd.mean()) if sd.mean() > 0 else None
                 res["rmse_model"] = float(np.sqrt(np.mean(err ** 2)))
             b = np.array([r["binned"][qname] for r in recs if r["binned"].get(qname) is not None], dtype=float)
@@ -307,7 +315,7 @@ def print_table(summary: dict, log=print) -> None:
     """The summary as plain text: m50 in detail, then the coverage of every quantity."""
     log("\nm50 of the image-average curve (bias, sd, RMSE in mmag; coverage with the binomial 99% range)")
     head = (f"{'truth':<16s} {'N':>7s} {'R':>3s} {'cov68':>6s} {'[99% range]':>13s} {'cov95':>6s} "
-            f"{'[99% range]':>13s} {'bias':>7s} {'+-se':>6s} {'sd':>6s} {'|b|/sd':>6s} {'rmse':>6s} "
+            f"{'[99% range]':>13s} {'bias':>7s} {'+-se':>6s} {'se_p':>6s} {'sd':>6s} {'|b|/sd':>6s} {'rmse':>6s} "
             f"{'binned':>6s} {'curve':>6s} {'binned':>6s} {'fit s':>6s}  models")
     log(head)
     log("-" * len(head))
@@ -321,12 +329,13 @@ def print_table(summary: dict, log=print) -> None:
             mm = lambda v: None if v is None else 1e3 * v  # noqa: E731
             log(f"{name:<16s} {int(n):>7d} {row['reps']:>3d} {m['cov68']:>6.2f} [{b68[0]:.2f}, {b68[1]:.2f}] "
                 f"{m['cov95']:>6.2f} [{b95[0]:.2f}, {b95[1]:.2f}] {_f(mm(m.get('bias')), '.1f', 7)} "
-                f"{_f(mm(m.get('bias_se')), '.1f')} {_f(mm(m.get('sd_mean')), '.1f')} "
+                f"{_f(mm(m.get('bias_se')), '.1f')} {_f(mm(m.get('bias_se_post')), '.1f')} {_f(mm(m.get('sd_mean')), '.1f')} "
                 f"{_f(m.get('abs_bias_over_sd'), '.2f')} {_f(mm(m.get('rmse_model')), '.1f')} "
                 f"{_f(mm(m.get('rmse_binned')), '.1f')} {_f(mm(row['curve']['rmse_model']), '.1f')} "
                 f"{_f(mm(row['curve']['rmse_binned']), '.1f')} {row['seconds_mean']:>6.1f}  {models}")
     log("  (curve: RMSE x 1000 of the posterior-median / binned image-average curve where the truth is in "
-        "[0.1, 0.9])")
+        "[0.1, 0.9]; +-se: the empirical se of the bias, se_p: sd / sqrt(R), the se if the replicates scatter "
+        "by the posterior sd; judge a bias against the larger of the two)")
     log("\ncoverage 68% / 95% of each quantity (* = outside the binomial 99% range)")
     head = f"{'truth':<16s} {'N':>7s} " + " ".join(f"{q:>15s}" for q in QUANTITIES)
     log(head)
