@@ -792,9 +792,8 @@ class ImportanceDiagnostics:
                 "warnings": list(self.warnings), "seconds": json_float(self.seconds)}
 
 
-def _t_draws(model, mean, cov, df, ndraws, rng):
-    """Student-t proposal draws and their log posterior (-inf where undefined)."""
-    chol = np.linalg.cholesky(cov)
+def _t_draws(model, mean, chol, df, ndraws, rng):
+    """Student-t proposal draws (scale ``chol @ chol.T``) and their log posterior (-inf where undefined)."""
     z = rng.standard_normal((ndraws, mean.size))
     chi2 = rng.chisquare(df, size=ndraws)
     draws = mean + (z @ chol.T) * np.sqrt(df / chi2)[:, None]
@@ -911,7 +910,7 @@ def importance_posterior(model, lap: LaplaceResult, *, seed: int, ndraws: int = 
     t0 = time.perf_counter()
     rng = rng_for(seed, Stream.IMPORTANCE)
     max_draws = max(int(ndraws), IS_MAX_DRAWS if max_draws is None else int(max_draws))
-    mean, cov = lap.mean, lap.cov * inflate ** 2
+    mean, chol = lap.mean, np.linalg.cholesky(lap.cov * inflate ** 2)
     # every round's draws are kept and weighted against the mixture of the proposals they came from
     # (the balance heuristic of multiple importance sampling): a moment-matched round adds to the draws
     # before it instead of replacing them, so no evaluation is thrown away
@@ -922,8 +921,8 @@ def importance_posterior(model, lap: LaplaceResult, *, seed: int, ndraws: int = 
         return x, lp, lp - _mixture_log_q(x, components, df)
 
     for round_ in range(1 + ADAPT_ROUNDS * int(adapt)):
-        x, lp = _t_draws(model, mean, cov, df, ndraws, rng)
-        components.append([mean, np.linalg.cholesky(cov), ndraws])
+        x, lp = _t_draws(model, mean, chol, df, ndraws, rng)
+        components.append([mean, chol, ndraws])
         draw_sets.append(x)
         logp_sets.append(lp)
         draws, log_p, lw_raw = weigh()
@@ -939,10 +938,10 @@ def importance_posterior(model, lap: LaplaceResult, *, seed: int, ndraws: int = 
             new_cov = (dev * w[:, None]).T @ dev * inflate ** 2  # as the t scale, inflated: wider than the target
             new_cov = 0.5 * (new_cov + new_cov.T)
             try:
-                np.linalg.cholesky(new_cov)
+                new_chol = np.linalg.cholesky(new_cov)
             except np.linalg.LinAlgError:
                 break
-            mean, cov = new_mean, new_cov
+            mean, chol = new_mean, new_chol
         else:
             break
     # pooling: more draws from the last proposal while the weights are trustworthy but too few are effective,
@@ -954,7 +953,7 @@ def importance_posterior(model, lap: LaplaceResult, *, seed: int, ndraws: int = 
         step = max(ndraws // 4, 1, need - have)
         if need > max_draws or have + step > max_draws:
             break
-        x, lp = _t_draws(model, components[-1][0], components[-1][1] @ components[-1][1].T, df, step, rng)
+        x, lp = _t_draws(model, mean, chol, df, step, rng)  # the last round's proposal
         components[-1][2] += step
         draw_sets.append(x)
         logp_sets.append(lp)

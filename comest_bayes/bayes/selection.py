@@ -616,7 +616,8 @@ m SE}_\Delta)` nats).  If no adequate candidate is
 
     fits, loos, models, seconds, extra = {}, {}, {}, {}, {}
     prev = start
-    for spec, name in zip(candidates, names):
+    for i, (spec, name) in enumerate(zip(candidates, names)):
+        first = i == 0
         t1 = time.perf_counter()
         model = factory(spec, data)
         cseed = int_seed_for(seed, Stream.SELECT, name)
@@ -633,9 +634,9 @@ m SE}_\Delta)` nats).  If no adequate candidate is
             eq_draws = draws[np.linspace(0, len(draws) - 1, min(len(draws), 400)).astype(int)]
         else:
             start = model.warm_start(*prev) if prev is not None and hasattr(model, "warm_start") else None
-            # the same parameters' MAP on other cells of the same outcomes (an escalated selection's first
-            # rung): a Newton refinement from it, not a search from scratch
-            refine = start is not None and list(prev[0]) == list(model.names)
+            # the caller's MAP of the first candidate's own parameters on other cells of the same outcomes (an
+            # escalated selection's first rung): a Newton refinement from it, not a search from scratch
+            refine = first and start is not None and list(prev[0]) == list(model.names)
             map_kw = dict(nstarts=1, method="newton") if refine else dict(nstarts=nstarts)
             if getattr(spec, "link", None) == "spline" and (taus or {}).get(name) is not None:
                 model.tau = float(taus[name])
