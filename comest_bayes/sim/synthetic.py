@@ -30,6 +30,7 @@ __all__ = [
     "TwoPopulationTruth",
     "StudentTruth",
     "VaryingWidthTruth",
+    "LogPlaneWidthTruth",
     "TRUTHS",
     "get_truth",
     "draw_outcomes",
@@ -517,6 +518,23 @@ class VaryingWidthTruth(Truth):
 
     def transition(self, t, u, v):
         return _expit(-t / self.width(u))
+
+
+@dataclass(frozen=True)
+class LogPlaneWidthTruth(VaryingWidthTruth):
+    """:class:`VaryingWidthTruth` with ``log w`` a plane in ``u`` (same end widths): inside the family of the
+    positional-width rungs, a control for them (not in :data:`TRUTHS`, which holds truths outside every rung).
+
+    ``w(u) = w_left (w_right / w_left)^((u + 1) / 2)``.
+    """
+
+    name: str = "width_logplane"
+    description: str = "logistic whose log width is a plane in u: 0.1 mag (u = -1) to 0.35 mag (u = +1)"
+
+    def width(self, u) -> np.ndarray:
+        """``w(u)``, mag."""
+        u = np.clip(np.asarray(u, float), -1.0, 1.0)
+        return self.w_left * np.exp(math.log(self.w_right / self.w_left) * 0.5 * (u + 1.0))
 
 
 def _solve_half(fn, lo: float = -10.0, hi: float = 10.0) -> float:

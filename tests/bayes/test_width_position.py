@@ -188,19 +188,14 @@ def test_the_rung_at_a_synthetic_truths_parameters_gives_its_exact_image_average
     m50 as the truth's exact pixel average (truth_quantities).  A mismatch of grid, footprint, coordinate or
     depth reference between the two would show here as an offset of the width truths only."""
     import math
-    from dataclasses import dataclass
 
     from comest_bayes.bayes.fit import footprint_grid
     from comest_bayes.bayes.posterior import FootprintHistogram, average_crossings
     from comest_bayes.sim import synthetic as S
 
-    @dataclass(frozen=True)
-    class LogPlane(S.VaryingWidthTruth):
-        def width(self, u):
-            u = np.clip(np.asarray(u, float), -1.0, 1.0)
-            return self.w_left * np.exp(math.log(self.w_right / self.w_left) * 0.5 * (u + 1.0))
-
-    truth = LogPlane(name="logplane")
+    truth = S.LogPlaneWidthTruth()
+    # log w a plane in u with the end widths of width_varies
+    assert np.allclose(truth.width(np.array([-1.0, 0.0, 1.0])), [0.1, math.sqrt(0.1 * 0.35), 0.35])
     scene = S.make_scene((90, 120), gradient=0.6, seed=5)
     exact = S.truth_quantities(truth, scene)["m50"]
     cov, det = _outcomes(300, 0.0, 0.0, seed=3)

@@ -1,6 +1,5 @@
 """Shared set-up of the bias300 diagnostics (issue #12): scene, truths, one 300k table, the rung's model."""
 import math, sys
-from dataclasses import dataclass
 import numpy as np
 from scipy.optimize import brentq
 from comest_bayes.pipeline import runtime
@@ -15,18 +14,8 @@ from comest_bayes.bayes.fit import footprint_grid
 MODEL = "logistic_depth_width_uv"
 
 
-@dataclass(frozen=True)
-class LogPlaneWidth(S.VaryingWidthTruth):
-    name: str = "width_logplane"
-    description: str = "width_varies with log w a plane in u (0.1 at u=-1, 0.35 at u=+1)"
-
-    def width(self, u):
-        u = np.clip(np.asarray(u, float), -1.0, 1.0)
-        return self.w_left * np.exp(math.log(self.w_right / self.w_left) * 0.5 * (u + 1.0))
-
-
 SCENE = S.make_scene((512, 512), gradient=0.6, chip_gap=True, seed=int_seed_for(12, "honesty", "scene"))
-TRUTHS = {"width_varies": S.get_truth("width_varies"), "width_logplane": LogPlaneWidth(),
+TRUTHS = {"width_varies": S.get_truth("width_varies"), "width_logplane": S.LogPlaneWidthTruth(),
           "logistic": S.get_truth("logistic")}
 
 
@@ -72,7 +61,7 @@ def true_theta(model, truth, sigma_ref):
     """The rung's parameters of a truth inside its family (logistic / width_logplane)."""
     m50_0 = truth.m50_0 - 2.5 * math.log10(sigma_ref / SCENE.sigma_ref)
     p = {"m50_0": m50_0, "A": truth.plateau, "floor": truth.floor, "beta_depth": 1.0}
-    if isinstance(truth, LogPlaneWidth):
+    if isinstance(truth, S.LogPlaneWidthTruth):
         half = 0.5 * math.log(truth.w_right / truth.w_left)
         p["log_w"] = math.log(truth.w_left) + half
         p["w_10"] = half
