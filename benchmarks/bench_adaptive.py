@@ -146,7 +146,7 @@ def adaptive_task(task: dict) -> dict:
     scene = _scene(task["scene"], task["scene_seed"])
     truth, (lo, hi), grid, curve, window, m50 = _truth_setup(task["scene"], scene)
     fitter = package_fitter(image_shape=scene.shape, noise=scene.noise, mask=scene.mask, lo=lo, hi=hi,
-                            seed=task["seed"])
+                            seed=task["seed"], most_flexible=task.get("design_model", "flexible") == "flexible")
     steps = []
 
     def fit(table, k):
@@ -328,6 +328,9 @@ def main(argv=None) -> int:
     p.add_argument("--precision", type=float, default=0.004,
                    help="adaptive runs stop at this m50 half-width (small: follow the RMSE down)")
     p.add_argument("--target", default="m50", choices=["m50", "curve"])
+    p.add_argument("--design-model", default="flexible", choices=["flexible", "selected"],
+                   help="model of the design fits after the first comparison: the selection's most flexible "
+                        "candidate (default since 2026-11-28) or the simplest adequate one (before)")
     p.add_argument("--workers", type=int, default=2)
     p.add_argument("--seed", type=int, default=16)
     p.add_argument("--out", default=None, help="results folder (default results/adaptive, or "
@@ -387,6 +390,9 @@ def main(argv=None) -> int:
     settings = {"seed": a.seed, "cap": a.cap, "precision": a.precision, "target": a.target}
     if (a.pilot, a.min_batch) != (1000, 250):  # recorded only when not the first runs' (so their raw.json stays valid)
         settings.update(pilot=a.pilot, min_batch=a.min_batch)
+    # the design fits' model (recorded since it became "flexible" on 2026-11-28: a raw.json of the
+    # earlier "selected" design fits then cannot be extended with the other kind of replicates)
+    settings["design_model"] = a.design_model
     raw_path = out / "raw.json"
     raw = {"settings": settings, "uniform": {}, "adaptive": {}}
     if raw_path.exists():
@@ -410,6 +416,7 @@ def main(argv=None) -> int:
                 tasks.append(("adaptive", {"key": key, "scene": sc, "scene_seed": scene_seed, "cap": a.cap,
                                            "precision": a.precision, "target": a.target,
                                            "pilot": a.pilot, "min_batch": a.min_batch,
+                                           "design_model": a.design_model,
                                            "seed": int_seed_for(a.seed, "adaptive", sc, rep)}))
     t0 = time.perf_counter()
     _run_tasks(tasks, {"uniform": uniform_task, "adaptive": adaptive_task}, raw, raw_path, a.workers)

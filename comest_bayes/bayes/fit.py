@@ -244,7 +244,7 @@ def fit_kind(outcomes: Table, *, kind: str, quantity: str, requested: str, confi
              noise, mask: np.ndarray, wcs_header: str | None, mag_range, mag_centers,
              outcome_column: str = "detected", footprint_points=None, warm: dict | None = None,
              footprints: dict | None = None, noise_grid: np.ndarray | None = None,
-             products: bool = True, map_starts: int = 6,
+             products: bool = True, map_starts: int = 6, most_flexible: bool = False,
              log=lambda s: None) -> tuple[CompletenessPosterior, FitEntry]:
     """Fit (or select and fit) the model of one kind and quantity.
 
@@ -290,6 +290,13 @@ def fit_kind(outcomes: Table, *, kind: str, quantity: str, requested: str, confi
         shape check).  False for a fit whose posterior is only queried by its caller (the adaptive
         design's refits): the entry then has empty ``magnitudes`` and ``curve`` and no
         ``shape_check``; the posterior is the same.
+    most_flexible : bool, default False
+        With a selection, fit only its most flexible candidate (the spline rung of ``auto``), with
+        the same smoothness choice and positional-width test, and when that test fires only the
+        most flexible positional-width rung: no simpler rung is compared.  The adaptive design's
+        fits use it (``docs/adaptive.md``, "The design's model"): a simpler rung that the
+        comparison found adequate at the last selection can drift from the truth by more than its
+        shrinking interval as the design concentrates the injections, and the design then follows it.
     map_starts : int, default 6
         Optimizer starts of the MAP of one model fitted from scratch (not a selection, not a warm
         refit; :func:`comest_bayes.bayes.inference.fit_map`): the adaptive design's pilot of its
@@ -326,6 +333,8 @@ def fit_kind(outcomes: Table, *, kind: str, quantity: str, requested: str, confi
     data = compress_for(spec, cov, outcome, meta=meta)
     seed = int_seed_for(config.seed, Stream.FIT, quantity, kind)
     candidates = resolve_candidates(spec) if spec.is_selection else [spec]
+    if most_flexible:
+        candidates = candidates[-1:]
 
     def footprint_cells(position: bool) -> Footprint:
         # every unmasked pixel, grouped into weighted covariate cells: the exact image average
@@ -368,7 +377,7 @@ def fit_kind(outcomes: Table, *, kind: str, quantity: str, requested: str, confi
             tested = {**test.to_dict(), "threshold": WIDTH_TEST_P, "escalated": bool(test.p_value < WIDTH_TEST_P)}
             if tested["escalated"]:
                 first = {"chosen": sel.chosen, "table": sel.to_dict()["table"]}
-                candidates = [chosen_spec] + width_cands
+                candidates = width_cands[-1:] if most_flexible else [chosen_spec] + width_cands
                 data = compress_for(candidates, cov, outcome, meta=meta, nuv=WIDTH_NUV)
                 cells = footprint_cells(True)
                 quantities = targeted_quantities(cells, probes, mag_lo, mag_hi)

@@ -347,7 +347,7 @@ def design_rung(spec):
 def package_fitter(*, image_shape, noise, mask, lo: float, hi: float, seed: int, model: str = "auto",
                    kind: str = "point", ngrid: int = 121, nsamples: int = 1000, mag_bin: float = 0.1,
                    reselect: float = 4.0, magnitudes=(), maps: dict | None = None, design_samples: int = 200,
-                   defer_selection: bool = True):
+                   defer_selection: bool = True, most_flexible: bool = True):
     """A ``fit`` callable for :func:`run_sequential` that runs the package's own completeness fit.
 
     Each call fits every outcome so far with :func:`comest_bayes.bayes.fit.fit_kind`
@@ -358,7 +358,13 @@ def package_fitter(*, image_shape, noise, mask, lo: float, hi: float, seed: int,
 
     With a selection such as ``auto`` the models are compared once the
     outcomes have grown ``reselect`` times since the pilot, and again whenever
-    they have grown ``reselect`` times since the last comparison.  Before the
+    they have grown ``reselect`` times since the last comparison.  With
+    ``most_flexible`` (the default) a comparison fits only the selection's most
+    flexible candidate (``spline_depth`` for ``auto``, its smoothness chosen
+    by the evidence) and its positional-width test, not the simplest adequate
+    rung: a simple rung that was adequate at the comparison drifts from a
+    truth outside its family as the design concentrates the injections, and
+    the design follows it (``docs/adaptive.md``, "The design's model").  Before the
     first comparison (``defer_selection``) the design fits one fixed rung,
     :func:`design_rung` (``richards_depth`` for ``auto``); without
     ``defer_selection`` the pilot is compared as well.  Every other call
@@ -411,7 +417,8 @@ def package_fitter(*, image_shape, noise, mask, lo: float, hi: float, seed: int,
                                    image_shape=image_shape, noise=noise, mask=mask, wcs_header=None,
                                    mag_range=(lo, hi), mag_centers=centers, warm=warm,
                                    footprints=state["maps"]["footprints"], noise_grid=state["maps"]["noise_grid"],
-                                   products=False, map_starts=DESIGN_MAP_STARTS)
+                                   products=False, map_starts=DESIGN_MAP_STARTS,
+                                   most_flexible=most_flexible and selecting and requested is spec)
             m50 = post.magnitudes_at((0.5,), nsamples=nsamples)[0.5]
             if len(magnitudes):  # the precision on f is read off the curves: all the draws
                 curves, curve_m50 = post.average_curve(grid, nsamples=nsamples), None

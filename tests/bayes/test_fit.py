@@ -81,6 +81,34 @@ def test_a_selection_escalates_to_a_positional_width_when_the_width_varies_acros
     assert abs(entry.parameters["w_10"]["median"]) < 0.2
 
 
+def test_the_most_flexible_fit_of_a_selection_compares_no_simpler_rung_and_still_escalates(tmp_path):
+    # most_flexible (the adaptive design's fits): only the last candidate is fitted, with the same width test,
+    # and when it fires only the last positional-width rung.  The same width-varying table as above, with
+    # a selection spec whose last candidate is logistic_depth (fast); the full selection chose it too.
+    n = 6000
+    table, noise_map = depth_split_outcomes(n, seed=21)
+    rng = np.random.default_rng(1021)
+    w = 0.1 + 0.25 * np.asarray(table["y"]) / (SHAPE[0] - 1)
+    mu = 24.0 - 2.5 * np.log10(np.asarray(table["noise"]))
+    table["detected"] = rng.random(n) < 0.98 / (1.0 + np.exp(-(mu - np.asarray(table["mag"])) / w))
+    spec = tmp_path / "auto_logistic.toml"
+    spec.write_text('name = "auto_logistic"\ncandidates = ["logistic", "logistic_depth"]\n'
+                    'width_candidates = ["logistic_depth_width_uv"]\n')
+    post, entry = fit_depth_split(table, noise_map, str(spec), min_ess=100, most_flexible=True)
+    test = entry.selection["width_test"]
+    assert test["escalated"] and test["p_value"] < 1e-6
+    assert [row["name"] for row in test["first_selection"]["table"]] == ["logistic_depth"]
+    assert [row["name"] for row in entry.selection["table"]] == ["logistic_depth_width_uv"]
+    assert entry.name == "logistic_depth_width_uv"
+    assert 0.4 < entry.parameters["w_01"]["median"] < 0.8
+    # a flat width: the last candidate alone, no escalation (the full selection would keep logistic_depth too,
+    # test_auto_selection_prefers_the_depth_model_when_depth_varies)
+    table, noise_map = depth_split_outcomes(6000, seed=1)
+    post, entry = fit_depth_split(table, noise_map, str(spec), min_ess=100, most_flexible=True)
+    assert [row["name"] for row in entry.selection["table"]] == ["logistic_depth"]
+    assert entry.name == "logistic_depth" and not entry.selection["width_test"]["escalated"]
+
+
 def test_auto_selection_keeps_the_simple_model_on_uniform_depth():
     table, noise_map = depth_split_outcomes(6000, depth_slope=0.0, seed=2)
     table["noise"] = 1.0

@@ -237,9 +237,11 @@ def test_the_design_defers_the_selection_to_four_times_the_pilot_and_refits_warm
 
     calls = []
 
-    def fake_fit_kind(table, *, requested, warm, map_starts, **kw):
+    def fake_fit_kind(table, *, requested, warm, map_starts, most_flexible, **kw):
         spec = load_spec(requested)
         chosen = load_spec("spline_depth") if spec.is_selection else spec
+        # only a comparison of the candidates is narrowed to the most flexible one
+        assert most_flexible == spec.is_selection
         calls.append((len(table), spec.name, warm is not None, map_starts))
         return _FakePosterior(chosen), FitEntry(name=chosen.name, requested=spec.name)
 
