@@ -54,20 +54,30 @@ def test_auto_selection_prefers_the_depth_model_when_depth_varies():
     assert entry.selection["width_test"]["p_value"] > 1e-3
 
 
-def test_a_selection_escalates_to_a_positional_width_when_the_width_varies_across_the_image(tmp_path):
-    # the depth-split truth, but the width grows from 0.1 mag (y = 0) to 0.35 mag (top), independent of
-    # depth; a selection spec with the logistic rungs of auto and its logistic width rung keeps the test fast
-    # (auto's spline rungs select the same way: the honesty benchmark, benchmarks/README.md)
-    n = 6000
+def _width_grows_along_y(n=6000):
+    """The depth-split truth with a width growing from 0.1 mag (y = 0) to 0.35 mag (top), independent of depth."""
     table, noise_map = depth_split_outcomes(n, seed=21)
     rng = np.random.default_rng(1021)  # not depth_split_outcomes' seed: its first draws are the positions
     w = 0.1 + 0.25 * np.asarray(table["y"]) / (SHAPE[0] - 1)
     mu = 24.0 - 2.5 * np.log10(np.asarray(table["noise"]))
     table["detected"] = rng.random(n) < 0.98 / (1.0 + np.exp(-(mu - np.asarray(table["mag"])) / w))
+    return table, noise_map
+
+
+def _logistic_selection(tmp_path) -> str:
+    """A selection spec with the logistic rungs of auto and its logistic width rung (fast to fit)."""
     spec = tmp_path / "auto_logistic.toml"
     spec.write_text('name = "auto_logistic"\ncandidates = ["logistic", "logistic_depth"]\n'
                     'width_candidates = ["logistic_depth_width_uv"]\n')
-    post, entry = fit_depth_split(table, noise_map, str(spec), min_ess=100)
+    return str(spec)
+
+
+def test_a_selection_escalates_to_a_positional_width_when_the_width_varies_across_the_image(tmp_path):
+    # the depth-split truth, but the width grows from 0.1 mag (y = 0) to 0.35 mag (top), independent of
+    # depth; a selection spec with the logistic rungs of auto and its logistic width rung keeps the test fast
+    # (auto's spline rungs select the same way: the honesty benchmark, benchmarks/README.md)
+    table, noise_map = _width_grows_along_y()
+    post, entry = fit_depth_split(table, noise_map, _logistic_selection(tmp_path), min_ess=100)
     test = entry.selection["width_test"]
     assert test["escalated"] and test["p_value"] < 1e-6
     # the escalated selection compares the first selection's choice with the positional-width rung, on
@@ -85,16 +95,8 @@ def test_the_most_flexible_fit_of_a_selection_compares_no_simpler_rung_and_still
     # most_flexible (the adaptive design's fits): only the last candidate is fitted, with the same width test,
     # and when it fires only the last positional-width rung.  The same width-varying table as above, with
     # a selection spec whose last candidate is logistic_depth (fast); the full selection chose it too.
-    n = 6000
-    table, noise_map = depth_split_outcomes(n, seed=21)
-    rng = np.random.default_rng(1021)
-    w = 0.1 + 0.25 * np.asarray(table["y"]) / (SHAPE[0] - 1)
-    mu = 24.0 - 2.5 * np.log10(np.asarray(table["noise"]))
-    table["detected"] = rng.random(n) < 0.98 / (1.0 + np.exp(-(mu - np.asarray(table["mag"])) / w))
-    spec = tmp_path / "auto_logistic.toml"
-    spec.write_text('name = "auto_logistic"\ncandidates = ["logistic", "logistic_depth"]\n'
-                    'width_candidates = ["logistic_depth_width_uv"]\n')
-    post, entry = fit_depth_split(table, noise_map, str(spec), min_ess=100, most_flexible=True)
+    table, noise_map = _width_grows_along_y()
+    post, entry = fit_depth_split(table, noise_map, _logistic_selection(tmp_path), min_ess=100, most_flexible=True)
     test = entry.selection["width_test"]
     assert test["escalated"] and test["p_value"] < 1e-6
     assert [row["name"] for row in test["first_selection"]["table"]] == ["logistic_depth"]
@@ -104,7 +106,7 @@ def test_the_most_flexible_fit_of_a_selection_compares_no_simpler_rung_and_still
     # a flat width: the last candidate alone, no escalation (the full selection would keep logistic_depth too,
     # test_auto_selection_prefers_the_depth_model_when_depth_varies)
     table, noise_map = depth_split_outcomes(6000, seed=1)
-    post, entry = fit_depth_split(table, noise_map, str(spec), min_ess=100, most_flexible=True)
+    post, entry = fit_depth_split(table, noise_map, _logistic_selection(tmp_path), min_ess=100, most_flexible=True)
     assert [row["name"] for row in entry.selection["table"]] == ["logistic_depth"]
     assert entry.name == "logistic_depth" and not entry.selection["width_test"]["escalated"]
 
