@@ -371,7 +371,8 @@ def fit_kind(outcomes: Table, *, kind: str, quantity: str, requested: str, confi
         width_cands = resolve_width_candidates(spec)
         if width_cands and not chosen_spec.uses_position and "uv" in (meta.get("available") or ()):
             # the width test of the chosen rung: one Jacobian of its cells, no refit (docs/bayesian.md,
-            # "Positional width"); only a scene whose width differs across the image pays for position
+            # "Positional width"); a plane and the rungs' quadratic field in log w, Bonferroni-combined;
+            # only a scene whose width differs across the image pays for position
             test = width_position_test(sel.models[sel.chosen], sel.fits[sel.chosen].map.theta, cov.u, cov.v,
                                        outcome)
             tested = {**test.to_dict(), "threshold": WIDTH_TEST_P, "escalated": bool(test.p_value < WIDTH_TEST_P)}
@@ -392,7 +393,8 @@ def fit_kind(outcomes: Table, *, kind: str, quantity: str, requested: str, confi
                 chosen_spec = next(c for c in candidates if c.name == sel.chosen)
                 tested["first_selection"] = first
                 log(f"fit: {kind} {quantity}: the width varies across the image (score test p = "
-                    f"{test.p_value:.2g}); selection escalated to {[c.name for c in candidates]}")
+                    f"{test.p_value:.2g}, {test.alternative} in log w); selection escalated to "
+                    f"{[c.name for c in candidates]}")
         model = sel.models[sel.chosen]
         mp = sel.fits[sel.chosen].map
         selection = {k: v for k, v in sel.to_dict().items() if k != "diagnostics"}

@@ -18,12 +18,13 @@ from scipy.special import logsumexp
 from comest_bayes.errors import InputError, ConfigError
 from comest_bayes.bayes.inference import FitResult, InferenceWarning, fit, log_prob_rows, fit_map, laplace
 from comest_bayes.seeding import Stream, int_seed_for, rng_for
-from comest_bayes.bayes.model import CompletenessModel, shared_layout
+from comest_bayes.bayes.bases import smooth_basis
+from comest_bayes.bayes.model import CompletenessModel, shared_layout, width_field_names
 from comest_bayes.bayes.checks import P_WARN, shape_check
 from comest_bayes.bayes.spec import resolve_candidates, load_spec
 
 __all__ = ["LooWarning", "LooResult", "SelectionResult", "loo_grouped", "compare_loo", "select_model",
-           "KHAT_THRESHOLD", "WidthTest", "width_position_test", "WIDTH_TEST_P"]
+           "KHAT_THRESHOLD", "WidthScore", "WidthTest", "width_position_test", "width_scores", "WIDTH_TEST_P"]
 
 #: Pareto k-hat above which the PSIS estimate of an observation is unreliable
 #: (Vehtari et al. 2024: above 0.7 the importance-sampling error converges too slowly).
@@ -729,55 +730,237 @@ WIDTH_TEST_P = 1e-3
 
 
 @dataclass
-class WidthTest:
-    """Result of :func:`width_position_test`.
+class WidthScore:
+    """One alternative of :func:`width_position_test`: the score statistic of a Legendre field in log w.
 
     Attributes
     ----------
+    alternative : str
+        ``"plane"`` (``w_10 u + w_01 v``) or ``"quadratic"`` (the plane plus ``w_20 P_2(u) + w_11 u v +
+        w_02 P_2(v)``, the field of the ``width_order = 2`` rungs).
     statistic : float
-        Score (Lagrange-multiplier) statistic of the plane ``w_10 u + w_01 v`` in log w.
+        Score (Lagrange-multiplier) statistic, chi-square with ``dof`` degrees of freedom under a flat width.
     dof : int
-        Its degrees of freedom (2; 1 when one coordinate does not vary).
+        The rank of the efficient information of the field's terms: 2 and 5 when both coordinates take
+        at least three values; less when a coordinate does not vary or a term is collinear with the others
+        (``u^2`` when ``u`` takes two values).
     p_value : float
         Chi-square tail probability of ``statistic``.
-    slopes : ndarray, shape (dof,)
-        One Newton step from the fitted model towards the plane: the slopes of log w on ``u`` and
-        ``v`` the data ask for (about their maximum-likelihood values when they are small).
-    slope_sd : ndarray, shape (dof,)
-        Their standard errors.
+    names : list of str
+        The field's coefficients, named as the positional-width rungs name them (``w_10``, ...).
+    coefficients : ndarray, shape (len(names),)
+        One Newton step from the fitted model towards the field: the coefficients the data ask for
+        (about their maximum-likelihood values when they are small); 0 for a term without information.
+    coefficient_sd : ndarray, shape (len(names),)
+        Their standard errors (0 for a term without information).
     """
 
+    alternative: str
     statistic: float
     dof: int
     p_value: float
-    slopes: np.ndarray
-    slope_sd: np.ndarray
+    names: list
+    coefficients: np.ndarray
+    coefficient_sd: np.ndarray
 
     def to_dict(self) -> dict:
         return {"statistic": float(self.statistic), "dof": int(self.dof), "p_value": float(self.p_value),
-                "slopes": [float(v) for v in self.slopes], "slope_sd": [float(v) for v in self.slope_sd]}
+                "coefficients": {n: float(c) for n, c in zip(self.names, self.coefficients)},
+                "coefficient_sd": {n: float(c) for n, c in zip(self.names, self.coefficient_sd)}}
+
+
+@dataclass
+class WidthTest:
+    """Result of :func:`width_position_test`: two score tests and the p-value that decides.
+
+    Attributes
+    ----------
+    plane, quadratic : WidthScore
+        The tests of a plane (2 dof) and of the second-degree field (5 dof) in log w.
+    p_value : float
+        Bonferroni combination of the two, ``min(1, 2 min(p_plane, p_quadratic))``: what
+        :data:`WIDTH_TEST_P` is compared with.  Under a flat width it is below ``a`` with probability
+        at most ``a``.
+    alternative : str
+        The alternative with the smaller p-value (``"plane"`` or ``"quadratic"``): the one that fired when
+        ``p_value < WIDTH_TEST_P``.
+    """
+
+    plane: WidthScore
+    quadratic: WidthScore
+    p_value: float
+    alternative: str
+
+    @property
+    def decisive(self) -> WidthScore:
+        """The :class:`WidthScore` of :attr:`alternative`."""
+        return self.plane if self.alternative == "plane" else self.quadratic
+
+    @property
+    def statistic(self) -> float:
+        """The statistic of :attr:`alternative`."""
+        return self.decisive.statistic
+
+    @property
+    def dof(self) -> int:
+        """Its degrees of freedom."""
+        return self.decisive.dof
+
+    @property
+    def slopes(self) -> np.ndarray:
+        """The plane's Newton step ``(w_10, w_01)`` (the slopes of log w on ``u`` and ``v``)."""
+        return np.asarray(self.plane.coefficients)
+
+    @property
+    def slope_sd(self) -> np.ndarray:
+        """Their standard errors."""
+        return np.asarray(self.plane.coefficient_sd)
+
+    def to_dict(self) -> dict:
+        """JSON-ready: the decision (``p_value``, ``alternative`` and its ``statistic``, ``dof`` and
+        ``coefficients``), then both tests in full (``plane``, ``quadratic``)."""
+        dec = self.decisive.to_dict()
+        return {"p_value": float(self.p_value), "alternative": self.alternative, "statistic": dec["statistic"],
+                "dof": dec["dof"], "coefficients": dec["coefficients"], "plane": self.plane.to_dict(),
+                "quadratic": self.quadratic.to_dict()}
+
+
+#: Relative size below which a direction of the efficient information of the width field counts as
+#: empty (a term the model's own parameters or the other terms already span): its dof are dropped.
+_WIDTH_RANK_TOL = 1e-8
+
+
+def _score_statistic(eff, var, ref) -> tuple[float, int, np.ndarray, np.ndarray]:
+    """``eff^T V^+ eff`` with the dof the rank of ``V``; the Newton step ``V^+ eff`` and its sd.
+
+    A term whose efficient variance is below :data:`_WIDTH_RANK_TOL` of its raw variance ``ref`` (the
+    diagonal of ``I_ss``) is spanned by the model's parameters (a coordinate that does not vary: its
+    Legendre term is a constant, which log w already has); among the rest, directions of the
+    correlation matrix below the same fraction of its largest eigenvalue are collinear terms.
+    """
+    k = eff.size
+    coef, sd = np.zeros(k), np.zeros(k)
+    diag = np.diag(var)
+    live = np.flatnonzero((diag > _WIDTH_RANK_TOL * np.maximum(ref, 0.0)) & (diag > 0) & np.isfinite(diag))
+    if live.size == 0:
+        return 0.0, 0, coef, sd
+    scale = np.sqrt(diag[live])
+    corr = var[np.ix_(live, live)] / np.outer(scale, scale)
+    lam, vec = np.linalg.eigh(0.5 * (corr + corr.T))
+    pos = lam > _WIDTH_RANK_TOL * max(float(lam.max()), 0.0)
+    if not pos.any():
+        return 0.0, 0, coef, sd
+    corr_pinv = (vec[:, pos] / lam[pos]) @ vec[:, pos].T
+    vinv = corr_pinv / np.outer(scale, scale)
+    step = vinv @ eff[live]
+    stat = float(eff[live] @ step)
+    if not math.isfinite(stat) or stat < 0:
+        stat = 0.0
+    coef[live] = step
+    sd[live] = np.sqrt(np.clip(np.diag(vinv), 0.0, None))
+    return stat, int(pos.sum()), coef, sd
+
+
+def width_scores(model, theta, basis, detected) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    r"""Efficient score of a field ``basis @ c`` added to log w, its variance and the raw variance.
+
+    The workhorse of :func:`width_position_test` (there ``basis`` is the Legendre field of the
+    positional-width rungs); see it for the construction.
+
+    Parameters
+    ----------
+    model : CompletenessModel
+        Fitted; its data must carry ``index``.
+    theta : array, shape (D,)
+        Its MAP.
+    basis : array, shape (N, K)
+        The field's terms at every injection, in the order of ``model.data.index``.
+    detected : array of bool, shape (N,)
+
+    Returns
+    -------
+    eff : ndarray, shape (K,)
+        :math:`s^* = s - I_{s\theta} I_{\theta\theta}^{-1} g`.
+    var : ndarray, shape (K, K)
+        :math:`V = I_{ss} - I_{s\theta} I_{\theta\theta}^{-1} I_{\theta s}`.
+    ref : ndarray, shape (K,)
+        The diagonal of :math:`I_{ss}` (the scale against which a term counts as absorbed).
+    """
+    data = model.data
+    if data.index is None:
+        raise InputError("width_position_test: the model's data has no cell index of the injections.")
+    index = np.asarray(data.index, np.int64)
+    x = np.asarray(basis, np.float64)
+    det = np.asarray(detected, bool)
+    if x.ndim != 2 or x.shape[0] != index.size or det.shape != index.shape:
+        raise InputError(f"width_position_test: the positions and detected need one entry per injection "
+                         f"({index.size}), got {x.shape[:1]} and {det.shape}.")
+    k = x.shape[1]
+    grads, logs = model.cell_gradients(np.asarray(theta, np.float64))  # (G, 2, D), (G, 2)
+    g = data.ncells
+    i_w = list(model.names).index("log_w")
+    # the observed score of the field: per (cell, outcome) group, the group's log-w gradient times the
+    # sum of its members' terms
+    grp = index * 2 + (~det).astype(np.int64)  # group (cell, outcome): 0 detected, 1 missed
+    n_grp = np.bincount(grp, minlength=2 * g).reshape(g, 2).astype(np.float64)
+    # the expected information: per cell, both outcomes weighted by their probabilities at the fit, and
+    # the sums of the terms and of their products over every member of the cell (whatever its outcome)
+    f = np.clip(np.exp(np.asarray(logs[:, 0], np.float64)), 0.0, 1.0)
+    prob = np.stack([f, 1.0 - f], axis=1)                                     # (G, 2)
+    # an outcome that neither occurs nor can occur (f = 0 or 1 exactly) has no finite gradient to add
+    grads = np.where(((n_grp > 0) | (prob > 0))[:, :, None], grads, 0.0)
+    gw = grads[:, :, i_w]                                                     # (G, 2)
+    score_t = np.einsum("gk,gkd->d", n_grp, grads)
+    score_s = np.array([np.einsum("gk,gk->", gw, np.bincount(grp, weights=x[:, j], minlength=2 * g).reshape(g, 2))
+                        for j in range(k)])
+    cnt = np.bincount(index, minlength=g).astype(np.float64)
+    sums = np.stack([np.bincount(index, weights=x[:, j], minlength=g) for j in range(k)], axis=1)  # (G, K)
+    e2 = (prob * gw * gw).sum(axis=1)                                         # E[(dl/dlog w)^2] per member
+    i_tt = np.einsum("gk,gkd,gke->de", prob * cnt[:, None], grads, grads)
+    i_ts = np.einsum("gk,gkd,gj->dj", prob * gw, grads, sums)                 # (D, K)
+    # per cell the sums of the products of the terms (for the quadratic field: u^a v^b up to a + b = 4)
+    i_ss = np.empty((k, k))
+    for a in range(k):
+        for b in range(a, k):
+            i_ss[a, b] = i_ss[b, a] = e2 @ np.bincount(index, weights=x[:, a] * x[:, b], minlength=g)
+    tt_inv = np.linalg.pinv(i_tt)
+    eff = score_s - i_ts.T @ tt_inv @ score_t
+    var = i_ss - i_ts.T @ tt_inv @ i_ts
+    return eff, 0.5 * (var + var.T), np.diag(i_ss).copy()
 
 
 def width_position_test(model, theta, u, v, detected) -> WidthTest:
-    r"""Does the transition width vary over the image?  A score test of a fitted model, no refit.
+    r"""Does the transition width vary over the image?  Score tests of a fitted model, no refit.
 
-    The alternative adds a plane to the log width, ``log w -> log w + w_10 u + w_01 v``.  Its score
-    at ``w = 0`` is, per injection, :math:`s_i = (\partial \ell_i / \partial \log w)\,(u_i, v_i)`:
-    the model's own cell gradients (cells hold their members at one covariate, so the gradient is
-    shared by the members of a cell with the same outcome) times each member's position, summed
-    with ``bincount`` over the injections' cells (``model.data.index``).  With the expected (Fisher)
-    information of the Bernoulli outcomes at the fit, per injection
-    :math:`\sum_{y} P(y)\,J_y J_y^T` over its two possible outcomes, :math:`J_y = (g_y, s_y)`
-    (:math:`g_y = \partial \ell / \partial \theta` for outcome ``y``, :math:`P(\mathrm{det}) = f`
-    of its cell), the efficient score of the plane (the part the model's own parameters cannot
-    absorb) and its variance are
+    Two alternatives add a Legendre field to the log width: a plane,
+    ``log w -> log w + w_10 u + w_01 v``, and the second-degree field of the positional-width rungs
+    (``width_order = 2``), ``+ w_20 P_2(u) + w_11 u v + w_02 P_2(v)`` as well.  The quadratic sees what
+    the plane cannot: a width that changes radially (wider at the corners than at the centre, as a
+    PSF that degrades off-axis makes it) or symmetrically about a centre line has no plane component.
+    The plane keeps the power of 2 degrees of freedom against a tilt.  The decision takes the smaller
+    of the two p-values with a Bonferroni factor of 2 (``p = min(1, 2 min(p_plane, p_quad))``), which
+    holds the level whatever their dependence.
+
+    The score of a field ``sum_j c_j x_j(u, v)`` at ``c = 0`` is, per injection,
+    :math:`s_i = (\partial \ell_i / \partial \log w)\,x(u_i, v_i)`: the model's own cell gradients
+    (cells hold their members at one covariate, so the gradient is shared by the members of a cell
+    with the same outcome) times each member's terms, summed with ``bincount`` over the injections'
+    cells (``model.data.index``).  With the expected (Fisher) information of the Bernoulli outcomes at
+    the fit, per injection :math:`\sum_{y} P(y)\,J_y J_y^T` over its two possible outcomes,
+    :math:`J_y = (g_y, s_y)` (:math:`g_y = \partial \ell / \partial \theta` for outcome ``y``,
+    :math:`P(\mathrm{det}) = f` of its cell), the efficient score of the field (the part the
+    model's own parameters cannot absorb) and its variance are
 
     .. math:: s^* = s - I_{s\theta} I_{\theta\theta}^{-1} g, \qquad
               V = I_{ss} - I_{s\theta} I_{\theta\theta}^{-1} I_{\theta s},
 
-    and :math:`s^{*T} V^{-1} s^*` is chi-square with 2 degrees of freedom when the width does not
-    vary with position (Rao's score test).  The cost is one Jacobian of the cell terms, already
-    compiled for the Laplace leave-one-out.
+    and :math:`s^{*T} V^{+} s^*` is chi-square with ``rank V`` degrees of freedom when the width does
+    not vary with position (Rao's score test).  :math:`I_{ss}` needs, per cell, the sums of the
+    products of the terms (for the quadratic, the monomials ``u^a v^b`` up to ``a + b = 4``).  The
+    plane's statistic is the same construction on the first two terms.  A coordinate that does not
+    vary, or a term collinear with the others (``u^2`` when ``u`` takes only two values), leaves
+    ``V`` rank-deficient: the pseudo-inverse and the rank (the dof) drop it.  The cost is one Jacobian
+    of the cell terms, already compiled for the Laplace leave-one-out.
 
     Why the expected information and not the outer products of the observed scores (the BHHH or
     OPG form, used until 2026-11-28): the OPG estimate of :math:`I_{\theta\theta}` rests on the
@@ -808,54 +991,18 @@ def width_position_test(model, theta, u, v, detected) -> WidthTest:
     """
     from scipy.special import chdtrc  # chi-square tail (scipy.stats costs a second to import)
 
-    data = model.data
-    if data.index is None:
-        raise InputError("width_position_test: the model's data has no cell index of the injections.")
-    index = np.asarray(data.index, np.int64)
     u = np.asarray(u, np.float64)
     v = np.asarray(v, np.float64)
-    det = np.asarray(detected, bool)
-    if u.shape != index.shape or v.shape != index.shape or det.shape != index.shape:
-        raise InputError(f"width_position_test: u, v and detected need one entry per injection ({index.size}), "
-                         f"got {u.shape}, {v.shape} and {det.shape}.")
-    grads, logs = model.cell_gradients(np.asarray(theta, np.float64))  # (G, 2, D), (G, 2)
-    g = data.ncells
-    i_w = list(model.names).index("log_w")
-    # the observed score of the plane: per (cell, outcome) group, the group's log-w gradient times the
-    # sum of its members' positions
-    grp = index * 2 + (~det).astype(np.int64)  # group (cell, outcome): 0 detected, 1 missed
-    n_grp = np.bincount(grp, minlength=2 * g).reshape(g, 2).astype(np.float64)
-    # the expected information: per cell, both outcomes weighted by their probabilities at the fit, and
-    # the positional sums over every member of the cell (whatever its outcome)
-    f = np.clip(np.exp(np.asarray(logs[:, 0], np.float64)), 0.0, 1.0)
-    prob = np.stack([f, 1.0 - f], axis=1)                                     # (G, 2)
-    # an outcome that neither occurs nor can occur (f = 0 or 1 exactly) has no finite gradient to add
-    grads = np.where(((n_grp > 0) | (prob > 0))[:, :, None], grads, 0.0)
-    score_t = np.einsum("gk,gkd->d", n_grp, grads)
-    score_s = np.array([np.einsum("gk,gk->", grads[:, :, i_w],
-                                  np.bincount(grp, weights=x, minlength=2 * g).reshape(g, 2)) for x in (u, v)])
-    cnt = np.bincount(index, minlength=g).astype(np.float64)
-    pos = {name: np.bincount(index, weights=x, minlength=g)
-           for name, x in (("u", u), ("v", v), ("uu", u * u), ("uv", u * v), ("vv", v * v))}
-    gw = grads[:, :, i_w]                                                     # (G, 2)
-    i_tt = np.einsum("gk,gkd,gke->de", prob * cnt[:, None], grads, grads)
-    i_ts = np.stack([np.einsum("gk,gkd->d", prob * gw * pos[c][:, None], grads) for c in ("u", "v")], axis=1)
-    e2 = (prob * gw * gw).sum(axis=1)                                         # E[(dl/dlog w)^2] per member
-    i_ss = np.array([[e2 @ pos["uu"], e2 @ pos["uv"]], [e2 @ pos["uv"], e2 @ pos["vv"]]])
-    keep = [j for j, x in enumerate((u, v)) if np.ptp(x) > 0]
-    if not keep:
-        return WidthTest(0.0, 0, 1.0, np.zeros(0), np.zeros(0))
-    score_s, i_ts, i_ss = score_s[keep], i_ts[:, keep], i_ss[np.ix_(keep, keep)]
-    tt_inv = np.linalg.pinv(i_tt)
-    eff = score_s - i_ts.T @ tt_inv @ score_t
-    var = i_ss - i_ts.T @ tt_inv @ i_ts
-    var = 0.5 * (var + var.T)
-    try:
-        vinv = np.linalg.inv(var)
-    except np.linalg.LinAlgError:
-        vinv = np.linalg.pinv(var)
-    stat = float(eff @ vinv @ eff)
-    if not math.isfinite(stat) or stat < 0:
-        stat = 0.0
-    dof = len(keep)
-    return WidthTest(stat, dof, float(chdtrc(dof, stat)), vinv @ eff, np.sqrt(np.clip(np.diag(vinv), 0, None)))
+    if u.ndim != 1 or v.shape != u.shape:
+        raise InputError(f"width_position_test: u, v and detected need one entry per injection, "
+                         f"got {u.shape} and {v.shape}.")
+    names = width_field_names(2)                        # w_10, w_01, w_20, w_11, w_02
+    eff, var, ref = width_scores(model, theta, smooth_basis(u, v, "poly", 2), detected)
+    out = {}
+    for alt, k in (("plane", 2), ("quadratic", len(names))):
+        stat, dof, coef, sd = _score_statistic(eff[:k], var[:k, :k], ref[:k])
+        p = float(chdtrc(dof, stat)) if dof else 1.0
+        out[alt] = WidthScore(alt, stat, dof, p, names[:k], coef, sd)
+    alt = "plane" if out["plane"].p_value <= out["quadratic"].p_value else "quadratic"
+    p = min(1.0, 2.0 * min(out["plane"].p_value, out["quadratic"].p_value))
+    return WidthTest(out["plane"], out["quadratic"], p, alt)

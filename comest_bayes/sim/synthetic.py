@@ -31,6 +31,7 @@ __all__ = [
     "StudentTruth",
     "VaryingWidthTruth",
     "LogPlaneWidthTruth",
+    "RadialWidthTruth",
     "TRUTHS",
     "get_truth",
     "draw_outcomes",
@@ -535,6 +536,39 @@ class LogPlaneWidthTruth(VaryingWidthTruth):
         """``w(u)``, mag."""
         u = np.clip(np.asarray(u, float), -1.0, 1.0)
         return self.w_left * np.exp(math.log(self.w_right / self.w_left) * 0.5 * (u + 1.0))
+
+
+@dataclass(frozen=True)
+class RadialWidthTruth(Truth):
+    """Logistic whose ``log w`` is quadratic in the distance from the image centre: inside the family of the
+    positional-width rungs (``width_order = 2``), with no plane component (a PSF that degrades off-axis).
+    Not in :data:`TRUTHS` (a control of those rungs, as :class:`LogPlaneWidthTruth`).
+
+    ``w(u, v) = w_centre (w_corner / w_centre)^(r^2 / 2)``, ``r^2 = u^2 + v^2`` (2 at the corners).
+    """
+
+    name: str = "width_radial"
+    description: str = ("logistic whose log width is quadratic in the distance from the centre: 0.12 mag at the "
+                        "centre, 0.36 mag at the corners, plateau 0.97, floor 0.01")
+    plateau: float = 0.97
+    floor: float = 0.01
+    w_centre: float = 0.12
+    w_corner: float = 0.36
+
+    def __post_init__(self):
+        super().__post_init__()
+        if not (self.w_centre > 0 and self.w_corner > 0):
+            raise InputError(f"truth {self.name!r}: widths must be positive, got w_centre = {self.w_centre!r}, "
+                             f"w_corner = {self.w_corner!r}.")
+
+    def width(self, u, v) -> np.ndarray:
+        """``w(u, v)``, mag."""
+        u = np.clip(np.asarray(u, float), -1.0, 1.0)
+        v = np.clip(np.asarray(v, float), -1.0, 1.0)
+        return self.w_centre * np.exp(math.log(self.w_corner / self.w_centre) * 0.5 * (u * u + v * v))
+
+    def transition(self, t, u, v):
+        return _expit(-t / self.width(u, v))
 
 
 def _solve_half(fn, lo: float = -10.0, hi: float = 10.0) -> float:
