@@ -952,9 +952,6 @@ def importance_posterior(model, lap: LaplaceResult, *, seed: int, ndraws: int = 
             mean, chol = new_mean, new_chol
         else:
             break
-    # pooling: more draws from the last proposal while the weights are trustworthy but too few are effective,
-    # at least a quarter of a batch at a time and otherwise as many as the current efficiency says are missing
-    # (+10%); no pooling when even max_draws would fall short at that efficiency
     # more draws from the last proposal, in two cases:
     # - pooling: the weights are trustworthy but too few are effective; at least a quarter of a batch at a time
     #   and otherwise as many as the current efficiency says are missing (+10%); none when even max_draws would
