@@ -562,9 +562,9 @@ m SE}_\Delta)` nats).  If no adequate candidate is
         default :class:`comest_bayes.bayes.model.CompletenessModel` on the
         candidates' shared layout.
     quantities : callable, optional
-        See *Adequacy*.
+        See *Adequacy*.  Not evaluated when there is one candidate (nothing to compare it with).
     mag_edges : array, optional
-        Magnitude bins of the shape check.
+        Magnitude bins of the shape check (likewise only with two or more candidates).
     adequacy_fraction : float
         See *Adequacy*.
     start : (names, theta), optional
@@ -617,6 +617,9 @@ m SE}_\Delta)` nats).  If no adequate candidate is
 
     fits, loos, models, seconds, extra = {}, {}, {}, {}, {}
     prev = start
+    # the adequacy check and the shape check judge the simpler candidates against the most flexible one: a
+    # single candidate (fit_kind's most_flexible) is adequate by definition and needs neither
+    compared = len(candidates) > 1
     for i, (spec, name) in enumerate(zip(candidates, names)):
         first = i == 0
         t1 = time.perf_counter()
@@ -653,12 +656,13 @@ m SE}_\Delta)` nats).  If no adequate candidate is
             lap = laplace(model, mp.theta)
             result = FitResult(map=mp, laplace=lap, posterior=None, seconds=0.0)
             loos[name] = loo_laplace(model, mp.theta, lap.cov)
-            draws, lw, rng = _laplace_draws(model, lap, seed=cseed, ndraws=QUANTITY_DRAWS)
-            eq_draws = _resample(draws, lw, QUANTITY_DRAWS, rng)
+            if compared:
+                draws, lw, rng = _laplace_draws(model, lap, seed=cseed, ndraws=QUANTITY_DRAWS)
+                eq_draws = _resample(draws, lw, QUANTITY_DRAWS, rng)
             prev = (list(model.names), mp.theta)
-        if quantities is not None:
+        if quantities is not None and compared:
             info["q_draws"] = quantities(model, eq_draws)
-        if mag_edges is not None:
+        if mag_edges is not None and compared:
 
             info["shape"] = shape_check(model, eq_draws, mag_edges)
         fits[name], models[name] = result, model

@@ -109,6 +109,9 @@ def test_the_most_flexible_fit_of_a_selection_compares_no_simpler_rung_and_still
     post, entry = fit_depth_split(table, noise_map, _logistic_selection(tmp_path), min_ess=100, most_flexible=True)
     assert [row["name"] for row in entry.selection["table"]] == ["logistic_depth"]
     assert entry.name == "logistic_depth" and not entry.selection["width_test"]["escalated"]
+    # one candidate has nothing to be compared with: no adequacy quantities or shape check are computed for it
+    row = entry.selection["table"][0]
+    assert row["adequate"] and row["quantities"] == {} and row["shape_p"] is None
 
 
 def test_auto_selection_keeps_the_simple_model_on_uniform_depth():
