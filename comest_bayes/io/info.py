@@ -102,6 +102,11 @@ def format_info(info: dict) -> str:
             lines.append(f"  {kind}: {'reached' if a.get('reached') else 'NOT reached'} in {len(a.get('batches') or [])} "
                          f"batches, {a.get('realizations')} realizations, {last.get('injections')} injections "
                          f"({reached})")
+            rep = a.get("reported") or {}
+            if rep.get("m50_halfwidth") is not None:
+                lines.append(f"    reported fit {rep.get('model')}: m50 half-width {_num(rep['m50_halfwidth'])}"
+                             + ("" if rep.get("meets_target") is None
+                                else " (within the target)" if rep["meets_target"] else " (wider than the target)"))
     if info.get("depth_5sigma") is not None:
         lines.append(f"5-sigma point-source depth: {info['depth_5sigma']:.2f} mag")
     if info["warnings"]:

@@ -609,6 +609,7 @@ def _injection_stages(run: RunDirectory, image: ImageData, det: DetectionResult,
     }
     if adaptive_summary is not None:
         summary["adaptive"] = adaptive_summary
+        _adaptive_reported(adaptive_summary, kinds, log)
     run.write_json(layout.SUMMARY, summary)
     return summary
 
@@ -846,6 +847,31 @@ def _adaptive_injection(run: RunDirectory, ctx, config: RunConfig, compute: "Com
                "kinds": {kind: {"reached": st["reached"], "reason": st["reason"], "realizations": st["n"],
                                 "batches": st["batches"]} for kind, st in state.items()}}
     return {kind: st["n"] for kind, st in state.items()}, summary
+
+
+def _adaptive_reported(adaptive_summary: dict, kinds: dict, log) -> None:
+    """Add to each kind of ``adaptive_summary`` the m50 interval the run reports, and say when it is wider.
+
+    The batches stop on the design fits' half-width (the selection's most flexible rung,
+    docs/adaptive.md); the fit stage then selects the simplest adequate rung on every outcome, whose
+    interval is what ``kinds.<kind>.model.m50`` reports.  ``reported`` records that model and its
+    68% half-width and whether it meets an m50 target (None for a target on f, or with no fit);
+    a run whose design reached the target but whose reported interval is wider says so.
+    """
+    at_f = adaptive_summary.get("target") == "f"
+    for kind, info in (adaptive_summary.get("kinds") or {}).items():
+        entry = (kinds.get(kind) or {}).get("model") or {}
+        m50 = entry.get("m50") or {}
+        if m50.get("hi68") is None or m50.get("lo68") is None:
+            info["reported"] = {"model": entry.get("name"), "m50_halfwidth": None, "meets_target": None}
+            continue
+        half = 0.5 * (m50["hi68"] - m50["lo68"])
+        meets = None if at_f else bool(half <= adaptive_summary["precision"] * (1.0 + 1e-9))
+        info["reported"] = {"model": entry.get("name"), "m50_halfwidth": half, "meets_target": meets}
+        if info.get("reached") and meets is False:
+            log(f"warning: adaptive: {kind}: the design fits reached the m50 half-width "
+                f"{adaptive_summary['precision']}, but the reported fit ({entry.get('name')}) has {half:.4f}; "
+                "a smaller --precision makes the batches go on until the reported interval is within the target")
 
 
 def _fit_stages(run: RunDirectory, image: ImageData, det: DetectionResult, config: RunConfig, kinds: dict,

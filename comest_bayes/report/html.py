@@ -634,6 +634,12 @@ def _adaptive_section(r: _Report) -> None:
     for kind, info in (ad.get("kinds") or {}).items():
         r.p(f"{kind}: {'precision reached' if info.get('reached') else 'precision NOT reached'}: "
             f"{info.get('reason', '')}", None if info.get("reached") else "warn")
+        rep = info.get("reported") or {}
+        if rep.get("m50_halfwidth") is not None:
+            wider = rep.get("meets_target") is False
+            r.p(f"{kind}: the batches stop on the design fits (the most flexible model); the fit reported above "
+                f"({rep.get('model')}) has an m50 68% half-width of {rep['m50_halfwidth']:.4f} mag"
+                + (", wider than the target" if wider else "") + ".", "warn" if wider else None)
 
     def make():
         import matplotlib.pyplot as plt

@@ -55,6 +55,13 @@ def test_batches_are_designed_recorded_and_summarised(adaptive_run):
     # either the precision was reached on the last batch, or the cap stopped it, and the summary says which
     assert ad["reached"] == (batches[-1]["halfwidth"] <= 0.02)
     assert ("precision reached" if ad["reached"] else "NOT reached") in "\n".join(lines)
+    # the interval the run reports (the fit stage's) is recorded next to the design's, and compared with the target
+    m50 = summary["kinds"]["point"]["model"]["m50"]
+    rep = ad["reported"]
+    assert rep["model"] == summary["kinds"]["point"]["model"]["name"] == "logistic"
+    assert rep["m50_halfwidth"] == pytest.approx(0.5 * (m50["hi68"] - m50["lo68"]))
+    assert rep["meets_target"] == (rep["m50_halfwidth"] <= 0.02)
+    assert (ad["reached"] and not rep["meets_target"]) == any("the reported fit" in line for line in lines)
     # the merged catalogs hold every realization of every batch
     injected = Table.read(out / "catalogs" / "point_injected.fits")
     assert sorted(set(np.asarray(injected["realization"]).tolist())) == list(range(ad["realizations"]))
@@ -122,6 +129,7 @@ def test_the_report_charts_precision_against_injections(adaptive_run):
     assert (out / "figures" / "adaptive_precision.png").is_file()
     ad = json.loads((out / "summary.json").read_text())["adaptive"]["kinds"]["point"]
     assert ("precision reached" if ad["reached"] else "precision NOT reached") in html
+    assert f"the fit reported above (logistic) has an m50 68% half-width of {ad['reported']['m50_halfwidth']:.4f}" in html
 
 
 def test_info_tells_how_the_adaptive_injection_ended(adaptive_run, capsys):
@@ -133,6 +141,7 @@ def test_info_tells_how_the_adaptive_injection_ended(adaptive_run, capsys):
     ad = json.loads((out / "summary.json").read_text())["adaptive"]["kinds"]["point"]
     assert "adaptive injection: target m50 half-width 0.02" in text
     assert f"point: {'reached' if ad['reached'] else 'NOT reached'} in {len(ad['batches'])} batches" in text
+    assert f"reported fit logistic: m50 half-width {ad['reported']['m50_halfwidth']:.4f}" in text
 
 
 
@@ -218,3 +227,31 @@ def test_precision_at_on_the_command_line_sets_the_f_target():
                                           "--precision-at", "23.5,24"])
     ad = cli._config_from_args(args).adaptive
     assert (ad.target, ad.magnitudes, ad.precision) == ("f", (23.5, 24.0), 0.02)
+
+
+def test_a_reported_interval_wider_than_the_target_is_recorded_and_logged():
+    """The batches stop on the design fits; the fit stage's own model may give a wider interval, and the
+    summary and the log say so (and stay quiet when it is within the target, or the target is on f)."""
+    from comest_bayes.pipeline.stages import _adaptive_reported
+
+    def summary(target="m50"):
+        return {"precision": 0.01, "target": target, "kinds": {"point": {"reached": True},
+                                                               "buldisk": {"reached": True}}}
+    kinds = {"point": {"model": {"name": "logistic", "m50": {"lo68": 24.990, "hi68": 25.014}}},
+             "buldisk": {"model": {"name": "spline_depth", "m50": {"lo68": 24.500, "hi68": 24.518}}}}
+    lines = []
+    ad = summary()
+    _adaptive_reported(ad, kinds, lines.append)
+    assert ad["kinds"]["point"]["reported"] == {"model": "logistic", "m50_halfwidth": pytest.approx(0.012),
+                                                "meets_target": False}
+    assert ad["kinds"]["buldisk"]["reported"]["meets_target"] is True
+    assert len(lines) == 1 and "point" in lines[0] and "0.0120" in lines[0]
+    # a target on f: the half-width is recorded, not judged
+    lines = []
+    ad = summary("f")
+    _adaptive_reported(ad, kinds, lines.append)
+    assert ad["kinds"]["point"]["reported"]["meets_target"] is None and not lines
+    # a kind without a model fit (fit.model = none): nothing to compare
+    ad = summary()
+    _adaptive_reported(ad, {"point": {}, "buldisk": {}}, lines.append)
+    assert ad["kinds"]["point"]["reported"] == {"model": None, "m50_halfwidth": None, "meets_target": None}
