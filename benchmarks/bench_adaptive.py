@@ -81,6 +81,7 @@ import math
 import os
 import sys
 import time
+import warnings
 from pathlib import Path
 
 import numpy as np
@@ -143,24 +144,37 @@ def adaptive_task(task: dict) -> dict:
     from comest_bayes.sim import synthetic as S
     from comest_bayes.pipeline.adaptive import AdaptiveSettings, package_fitter, run_sequential
 
+    from comest_bayes.bayes.fit import shared_maps
+
     scene = _scene(task["scene"], task["scene_seed"])
     truth, (lo, hi), grid, curve, window, m50 = _truth_setup(task["scene"], scene)
+    maps = shared_maps(scene.noise, scene.mask, ["auto"])
     fitter = package_fitter(image_shape=scene.shape, noise=scene.noise, mask=scene.mask, lo=lo, hi=hi,
-                            seed=task["seed"], most_flexible=task.get("design_model", "flexible") == "flexible")
+                            seed=task["seed"], most_flexible=task.get("design_model", "flexible") == "flexible",
+                            maps=maps)
     steps = []
+
+    def score(m50_draws, fgrid, curves) -> dict:
+        med = np.median(curves, axis=0)
+        ok = np.isfinite(m50_draws)
+        q = np.percentile(m50_draws[ok], [2.275, 15.865, 50, 84.135, 97.725]) if ok.mean() >= 0.5 else [np.nan] * 5
+        return {"m50_err": float(q[2] - m50),
+                "curve_rms": float(np.sqrt(np.mean((np.interp(grid[window], fgrid, med) - curve[window]) ** 2))),
+                "halfwidth": float(0.5 * (q[3] - q[1])), "cover68": bool(q[1] <= m50 <= q[3]),
+                "cover95": bool(q[0] <= m50 <= q[4])}
 
     def fit(table, k):
         c0 = time.process_time()
         view, post = fitter(table, k)
         cpu = time.process_time() - c0
-        med = np.median(view.curves, axis=0)
-        ok = np.isfinite(view.m50)
-        q = np.percentile(view.m50[ok], [2.275, 15.865, 50, 84.135, 97.725]) if ok.mean() >= 0.5 else [np.nan] * 5
-        steps.append({"n": len(table), "m50_err": float(q[2] - m50),
-                      "curve_rms": float(np.sqrt(np.mean((np.interp(grid[window], view.grid, med)
-                                                          - curve[window]) ** 2))),
-                      "halfwidth": view.m50_halfwidth, "cover68": bool(q[1] <= m50 <= q[3]),
-                      "cover95": bool(q[0] <= m50 <= q[4]), "cpu_fit": cpu, "model": post[1].name})
+        step = score(np.asarray(view.m50, float), view.grid, view.curves)
+        step.update(n=len(table), halfwidth=view.m50_halfwidth, cpu_fit=cpu, model=post[1].name)
+        if task.get("final_fit"):
+            _, entry, m50_draws, curves, cpu_final = final_fit(
+                table, k, image_shape=scene.shape, noise=scene.noise, mask=scene.mask, lo=lo, hi=hi,
+                seed=task["seed"], maps=maps, fgrid=view.grid)
+            step["final"] = {**score(m50_draws, view.grid, curves), "cpu_fit": cpu_final, "model": entry.name}
+        steps.append(step)
         return view, post
 
     def simulate(mags, k):
@@ -171,6 +185,33 @@ def adaptive_task(task: dict) -> dict:
     t0 = time.perf_counter()
     run_sequential(simulate, fit, lo, hi, settings, seed=task["seed"])
     return {"key": task["key"], "steps": steps, "wall": time.perf_counter() - t0}
+
+
+def final_fit(table, k: int, *, image_shape, noise, mask, lo: float, hi: float, seed: int, maps: dict, fgrid):
+    """What a run stopped after this batch reports: the fit stage's own fit of the outcomes so far.
+
+    The run's fit stage selects the simplest adequate rung of ``auto`` on every outcome, from
+    scratch, with its default MAP starts (:func:`comest_bayes.pipeline.fits.fit_task`); the design
+    fits fit the selection's most flexible rung.  Returns ``(posterior, entry, m50 draws, curves on
+    fgrid, CPU seconds)``.
+    """
+    from comest_bayes.bayes.fit import fit_kind
+    from comest_bayes.config import RunConfig
+    from comest_bayes.ratios import binned as R
+    from comest_bayes.seeding import int_seed_for
+
+    edges = R.magnitude_edges(lo, hi, 0.1)
+    c0 = time.process_time()
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        post, entry = fit_kind(table, kind="point", quantity="completeness", requested="auto",
+                               config=RunConfig(seed=int_seed_for(seed, "final-fit", k)), image_shape=image_shape,
+                               noise=noise, mask=mask, wcs_header=None, mag_range=(lo, hi),
+                               mag_centers=0.5 * (edges[:-1] + edges[1:]), footprints=maps["footprints"],
+                               noise_grid=maps["noise_grid"], products=False)
+        m50_draws = np.asarray(post.magnitudes_at((0.5,), nsamples=1000)[0.5], float)
+        curves = post.average_curve(fgrid, nsamples=1000)
+    return post, entry, m50_draws, curves, time.process_time() - c0
 
 
 def _needed(ns, rmse, target: float) -> float | None:
@@ -202,7 +243,31 @@ def _binom99(n: int, p: float) -> list:
     return [float(binom.ppf(0.005, n, p) / n), float(binom.ppf(0.995, n, p) / n)]
 
 
+def final_view(raw: dict) -> dict:
+    """``raw`` with every adaptive step scored on the fit a run stopped there reports (:func:`final_fit`).
+
+    Each step keeps its ``n`` (and ``within06``), its design fit's CPU (``cpu_fit``, summed over
+    the steps so far) and half-width (``halfwidth_design``: where a run stops), and takes the rest
+    (errors, scores, half-width, coverage flags, model) from its ``final`` entry, whose CPU becomes
+    ``cpu_final``.
+    """
+    view = {**raw, "adaptive": {}}
+    for k, r in raw["adaptive"].items():
+        steps = []
+        for s in r["steps"]:
+            f = s["final"]
+            steps.append({**f, "n": s["n"], "cpu_fit": s["cpu_fit"], "cpu_final": f["cpu_fit"],
+                          "halfwidth_design": s["halfwidth"],
+                          **({"within06": s["within06"]} if "within06" in s else {})})
+        view["adaptive"][k] = {**r, "steps": steps}
+    return view
+
+
 def summarise(raw: dict, scenes, truths: dict | None = None) -> dict:
+    """Per scene: RMSEs against N, injections needed, coverage at the stop (the first step whose design
+    half-width is at most 0.01 mag).  On a :func:`final_view` the CPU after a step counts the design
+    fits so far and that step's final fit.
+    """
     out = {}
     for sc in scenes:
         uni = sorted((r for k, r in raw["uniform"].items() if k.startswith(sc + "|")), key=lambda r: r["n"])
@@ -216,7 +281,12 @@ def summarise(raw: dict, scenes, truths: dict | None = None) -> dict:
         a_n = [ada[0]["steps"][j]["n"] for j in range(nstep)]
         a_m50 = [float(np.sqrt(np.nanmean([r["steps"][j]["m50_err"] ** 2 for r in ada]))) for j in range(nstep)]
         a_curve = [float(np.sqrt(np.nanmean([r["steps"][j]["curve_rms"] ** 2 for r in ada]))) for j in range(nstep)]
-        a_cpu = [float(np.mean([sum(s["cpu_fit"] for s in r["steps"][:j + 1]) for r in ada])) for j in range(nstep)]
+        # rms of error over 68% half-width per step: about 1 for honest intervals
+        a_z = [float(np.sqrt(np.nanmean([(r["steps"][j]["m50_err"] / r["steps"][j]["halfwidth"]) ** 2
+                                         for r in ada]))) for j in range(nstep)]
+        a_cpu = [float(np.mean([sum(s["cpu_fit"] for s in r["steps"][:j + 1])
+                                + r["steps"][j].get("cpu_final", 0.0) for r in ada]))
+                 for j in range(nstep)]
         needed = {}
         for name, (what, level) in TARGETS.items():
             nu = _needed(u_n, u_m50 if what == "m50" else u_curve, level)
@@ -229,7 +299,7 @@ def summarise(raw: dict, scenes, truths: dict | None = None) -> dict:
         # coverage at the first step whose half-width reaches 0.01 mag
         hits68, hits95 = [], []
         for r in ada:
-            s = next((s for s in r["steps"] if s["halfwidth"] <= 0.01), None)
+            s = next((s for s in r["steps"] if s.get("halfwidth_design", s["halfwidth"]) <= 0.01), None)
             if s is not None:
                 hits68.append(s["cover68"])
                 hits95.append(s["cover95"])
@@ -238,7 +308,8 @@ def summarise(raw: dict, scenes, truths: dict | None = None) -> dict:
             "truth": (truths or {}).get(sc) or SCENES[sc]["truth"], "replicates": len(ada),
             "uniform": {"n": u_n, "m50_rmse": u_m50, "curve_rmse": u_curve},
             "adaptive": {"n": a_n, "m50_rmse": a_m50, "curve_rmse": a_curve, "cpu_fit_cumulative": a_cpu,
-                         "models": sorted({s["model"] for r in ada for s in r["steps"]})},
+                         "error_over_halfwidth_rms": a_z, "models": sorted({s["model"] for r in ada for s in r["steps"]}),
+                         "scored": "final" if "cpu_final" in ada[0]["steps"][0] else "design"},
             "needed": needed,
             "coverage_at_0.01": {"replicates": nrep,
                                  "cov68": float(np.mean(hits68)) if nrep else None,
@@ -331,6 +402,10 @@ def main(argv=None) -> int:
     p.add_argument("--design-model", default="flexible", choices=["flexible", "selected"],
                    help="model of the design fits after the first comparison: the selection's most flexible "
                         "candidate (default since 2026-11-28) or the simplest adequate one (before)")
+    p.add_argument("--final-fit", action="store_true",
+                   help="also fit, after every batch, what a run stopped there reports (the fit stage's "
+                        "selection of auto on every outcome so far) and score that (the headline figures); "
+                        "the design fits' own scores stay under 'design'")
     p.add_argument("--workers", type=int, default=2)
     p.add_argument("--seed", type=int, default=16)
     p.add_argument("--out", default=None, help="results folder (default results/adaptive, or "
@@ -393,6 +468,8 @@ def main(argv=None) -> int:
     # the design fits' model (recorded since it became "flexible" on 2026-11-28: a raw.json of the
     # earlier "selected" design fits then cannot be extended with the other kind of replicates)
     settings["design_model"] = a.design_model
+    if a.final_fit:  # recorded only when set (earlier raw.json files stay valid)
+        settings["final_fit"] = True
     raw_path = out / "raw.json"
     raw = {"settings": settings, "uniform": {}, "adaptive": {}}
     if raw_path.exists():
@@ -416,22 +493,33 @@ def main(argv=None) -> int:
                 tasks.append(("adaptive", {"key": key, "scene": sc, "scene_seed": scene_seed, "cap": a.cap,
                                            "precision": a.precision, "target": a.target,
                                            "pilot": a.pilot, "min_batch": a.min_batch,
-                                           "design_model": a.design_model,
+                                           "design_model": a.design_model, "final_fit": a.final_fit,
                                            "seed": int_seed_for(a.seed, "adaptive", sc, rep)}))
     t0 = time.perf_counter()
     _run_tasks(tasks, {"uniform": uniform_task, "adaptive": adaptive_task}, raw, raw_path, a.workers)
-    summary = summarise(raw, a.scenes)
+    summary = summarise(final_view(raw) if a.final_fit else raw, a.scenes)
     report = {"settings": settings, "wall_seconds": time.perf_counter() - t0, "scenes": summary}
+    if a.final_fit:
+        report["design_fit_scores"] = summarise(raw, a.scenes)
     (out / "adaptive.json").write_text(json.dumps(report, indent=1))
     chart(summary, out / "adaptive.png")
+    for label, summ in (("final fit", summary), ("design fit", report.get("design_fit_scores", {}))):
+        if a.final_fit:
+            print(f"-- scored on the {label}")
+        _print_summary(summ)
+    print(f"wrote {out / 'adaptive.json'} and {out / 'adaptive.png'}")
+    return 0
+
+
+def _print_summary(summary: dict) -> None:
     for sc, s in summary.items():
         print(f"{sc} ({s['truth']}): injections needed uniform+binned / adaptive: " + "; ".join(
             f"{k}: {_fmt(v['uniform_binned'])} / {_fmt(v['adaptive'])} = x{_fmt(v['ratio'], '.1f')}"
             for k, v in s["needed"].items())
               + f"; coverage at half-width 0.01: 68% {s['coverage_at_0.01']['cov68']}, "
                 f"95% {s['coverage_at_0.01']['cov95']} ({s['coverage_at_0.01']['replicates']} replicates)")
-    print(f"wrote {out / 'adaptive.json'} and {out / 'adaptive.png'}")
-    return 0
+        print("   n: " + " ".join(f"{n}" for n in s["adaptive"]["n"]))
+        print("   rms(error/half-width): " + " ".join(f"{z:.2f}" for z in s["adaptive"]["error_over_halfwidth_rms"]))
 
 
 # --------------------------------------------------------------------------- real outcome pools
@@ -744,8 +832,11 @@ def pool_adaptive_task(task: dict) -> dict:
     share = perm_a.size // task["reps"]
     part = perm_a[task["rep"] * share:(task["rep"] + 1) * share]
     sampler = PoolSampler(c["mag"], part, uniform_design(lo, hi).edges, task["seed"])
+    from comest_bayes.bayes.fit import shared_maps
+
+    maps = shared_maps(pool["noise"], pool["mask"], ["auto"])
     fitter = package_fitter(image_shape=pool["noise"].shape, noise=pool["noise"], mask=pool["mask"], lo=lo, hi=hi,
-                            seed=task["seed"])
+                            seed=task["seed"], maps=maps)
     steps = []
     primary = task["primary"]
     # the regions as noise thresholds: deep = noise at most the median of the unmasked noise map
@@ -754,22 +845,30 @@ def pool_adaptive_task(task: dict) -> dict:
         thr = float(np.median(pool["noise"][~pool["mask"]]))
         region_depths = {"deep half": ("le", thr), "shallow half": ("gt", thr)}
 
+    def scored(post, m50_draws, fgrid, curves) -> dict:
+        ok = np.isfinite(m50_draws)
+        q = (np.percentile(m50_draws[ok], [2.275, 15.865, 50, 84.135, 97.725]) if ok.mean() >= 0.5
+             else [np.nan] * 5)
+        est = {"": (q[2], fgrid, np.median(curves, axis=0))}
+        for region, thr in region_depths.items():
+            est[region] = _region_estimate(post, fgrid, thr)
+        m_ref = refs[primary]["m50"]
+        return {"scores": _ref_scores(refs, est), "halfwidth": float(0.5 * (q[3] - q[1])),
+                "cover68": bool(q[1] <= m_ref <= q[3]), "cover95": bool(q[0] <= m_ref <= q[4])}
+
     def fit(table, k):
         c0 = time.process_time()
         view, post = fitter(table, k)
         cpu = time.process_time() - c0
-        ok = np.isfinite(view.m50)
-        q = (np.percentile(view.m50[ok], [2.275, 15.865, 50, 84.135, 97.725]) if ok.mean() >= 0.5
-             else [np.nan] * 5)
-        est = {"": (q[2], view.grid, np.median(view.curves, axis=0))}
-        for region, thr in region_depths.items():
-            est[region] = _region_estimate(post[0], view.grid, thr)
-        sc = _ref_scores(refs, est)
-        m_ref = refs[primary]["m50"]
-        steps.append({"n": len(table), "scores": sc, "halfwidth": view.m50_halfwidth,
-                      "cover68": bool(q[1] <= m_ref <= q[3]), "cover95": bool(q[0] <= m_ref <= q[4]),
-                      "cpu_fit": cpu, "model": post[1].name,
-                      "within06": float(np.mean(np.abs(np.asarray(table["mag"]) - m_ref) <= 0.6))})
+        step = scored(post[0], np.asarray(view.m50, float), view.grid, view.curves)
+        step.update(n=len(table), halfwidth=view.m50_halfwidth, cpu_fit=cpu, model=post[1].name,
+                    within06=float(np.mean(np.abs(np.asarray(table["mag"]) - refs[primary]["m50"]) <= 0.6)))
+        if task.get("final_fit"):
+            fpost, entry, m50_draws, curves, cpu_final = final_fit(
+                table, k, image_shape=pool["noise"].shape, noise=pool["noise"], mask=pool["mask"], lo=lo, hi=hi,
+                seed=task["seed"], maps=maps, fgrid=view.grid)
+            step["final"] = {**scored(fpost, m50_draws, view.grid, curves), "cpu_fit": cpu_final, "model": entry.name}
+        steps.append(step)
         return view, post
 
     def simulate(mags, k):
@@ -904,6 +1003,8 @@ def run_pool(a) -> int:
         settings["regions"] = True
     if a.primary is not None:
         settings["primary"] = a.primary
+    if a.final_fit:
+        settings["final_fit"] = True
     raw_path = out / f"raw_{scene}.json"
     raw = {"settings": settings, "uniform": {}, "adaptive": {}}
     if raw_path.exists():
@@ -936,17 +1037,28 @@ def run_pool(a) -> int:
         if key not in raw["adaptive"]:
             tasks.append(("adaptive", {**base, "key": key, "rep": rep, "reps": a.reps, "cap": a.cap,
                                        "precision": a.precision, "target": a.target, "pilot": a.pilot,
-                                       "min_batch": a.min_batch, "primary": primary,
+                                       "min_batch": a.min_batch, "primary": primary, "final_fit": a.final_fit,
                                        "seed": int_seed_for(a.seed, "adaptive", scene, rep)}))
     _run_tasks(tasks, {"uniform": pool_uniform_task, "adaptive": pool_adaptive_task}, raw, raw_path, a.workers)
-    summary = summarise_pool(raw, scene, refs, pool["cpu_per_injection"], primary)
+    summary = summarise_pool(final_view(raw) if a.final_fit else raw, scene, refs, pool["cpu_per_injection"], primary)
     report = {"settings": settings, "scene": scene, "primary_reference": primary,
               "pool_injections": int(held.size), "held_out": int(held.sum()),
               "mag_range": [pool["lo"], pool["hi"]], "cpu_per_injection": pool["cpu_per_injection"],
               "references": summary}
+    if a.final_fit:
+        report["design_fit_scores"] = summarise_pool(raw, scene, refs, pool["cpu_per_injection"], primary)
     (out / f"adaptive_{scene}.json").write_text(json.dumps(report, indent=1))
     chart({f"{scene}, vs {k.replace('held-out pool', 'held-out')}": v for k, v in summary.items()},
           out / f"adaptive_{scene}.png", cpu=True)
+    for label, summ in (("final fit", summary), ("design fit", report.get("design_fit_scores", {}))):
+        if a.final_fit:
+            print(f"-- scored on the {label}")
+        _print_pool(summ, scene, primary)
+    print(f"wrote {out / f'adaptive_{scene}.json'} and {out / f'adaptive_{scene}.png'}")
+    return 0
+
+
+def _print_pool(summary: dict, scene: str, primary: str) -> None:
     for ref, s in summary.items():
         print(f"{scene} vs {ref}: injections needed uniform+binned / adaptive: " + "; ".join(
             f"{k}: {_fmt(v['uniform_binned'])} / {_fmt(v['adaptive'])} = x{_fmt(v['ratio'], '.1f')}"
@@ -971,8 +1083,6 @@ def run_pool(a) -> int:
               f"{cp['halfwidth_median']:.4f}): 68% {cp['cov68']:.2f}, 95% {cp['cov95']:.2f}; error / half-width "
               f"mean {cp['error_over_halfwidth']['mean']:+.2f} sd {_fmt(cp['error_over_halfwidth']['sd'], '.2f')}; with the "
               f"reference's own noise: 68% {wr['cov68']:.2f}, 95% {wr['cov95']:.2f}", flush=True)
-    print(f"wrote {out / f'adaptive_{scene}.json'} and {out / f'adaptive_{scene}.png'}")
-    return 0
 
 
 def _fmt(v, spec: str = ".0f") -> str:
