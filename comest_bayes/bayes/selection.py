@@ -915,18 +915,14 @@ def width_scores(model, theta, basis, detected) -> tuple[np.ndarray, np.ndarray,
     grads = np.where(((n_grp > 0) | (prob > 0))[:, :, None], grads, 0.0)
     gw = grads[:, :, i_w]                                                     # (G, 2)
     score_t = np.einsum("gk,gkd->d", n_grp, grads)
-    score_s = np.array([np.einsum("gk,gk->", gw, np.bincount(grp, weights=x[:, j], minlength=2 * g).reshape(g, 2))
-                        for j in range(k)])
+    score_s = x.T @ gw.reshape(-1)[grp]                 # each injection's log-w gradient times its terms
     cnt = np.bincount(index, minlength=g).astype(np.float64)
-    sums = np.stack([np.bincount(index, weights=x[:, j], minlength=g) for j in range(k)], axis=1)  # (G, K)
+    sums = np.zeros((g, k))
+    np.add.at(sums, index, x)                                                 # (G, K): the terms summed per cell
     e2 = (prob * gw * gw).sum(axis=1)                                         # E[(dl/dlog w)^2] per member
     i_tt = np.einsum("gk,gkd,gke->de", prob * cnt[:, None], grads, grads)
     i_ts = np.einsum("gk,gkd,gj->dj", prob * gw, grads, sums)                 # (D, K)
-    # per cell the sums of the products of the terms (for the quadratic field: u^a v^b up to a + b = 4)
-    i_ss = np.empty((k, k))
-    for a in range(k):
-        for b in range(a, k):
-            i_ss[a, b] = i_ss[b, a] = e2 @ np.bincount(index, weights=x[:, a] * x[:, b], minlength=g)
+    i_ss = (x * e2[index][:, None]).T @ x               # sum over injections of E[(dl/dlog w)^2] x x^T
     tt_inv = np.linalg.pinv(i_tt)
     eff = score_s - i_ts.T @ tt_inv @ score_t
     var = i_ss - i_ts.T @ tt_inv @ i_ts
