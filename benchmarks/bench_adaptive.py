@@ -156,8 +156,7 @@ def adaptive_task(task: dict) -> dict:
 
     def score(m50_draws, fgrid, curves) -> dict:
         med = np.median(curves, axis=0)
-        ok = np.isfinite(m50_draws)
-        q = np.percentile(m50_draws[ok], [2.275, 15.865, 50, 84.135, 97.725]) if ok.mean() >= 0.5 else [np.nan] * 5
+        q = _m50_quantiles(m50_draws)
         return {"m50_err": float(q[2] - m50),
                 "curve_rms": float(np.sqrt(np.mean((np.interp(grid[window], fgrid, med) - curve[window]) ** 2))),
                 "halfwidth": float(0.5 * (q[3] - q[1])), "cover68": bool(q[1] <= m50 <= q[3]),
@@ -185,6 +184,14 @@ def adaptive_task(task: dict) -> dict:
     t0 = time.perf_counter()
     run_sequential(simulate, fit, lo, hi, settings, seed=task["seed"])
     return {"key": task["key"], "steps": steps, "wall": time.perf_counter() - t0}
+
+
+def _m50_quantiles(m50_draws) -> np.ndarray:
+    """The 2.3, 15.9, 50, 84.1 and 97.7 percentiles of the m50 draws (the median and the 68% and 95%
+    intervals), or NaN when fewer than half the draws have an m50."""
+    d = np.asarray(m50_draws, float)
+    ok = np.isfinite(d)
+    return np.percentile(d[ok], [2.275, 15.865, 50, 84.135, 97.725]) if ok.mean() >= 0.5 else np.full(5, np.nan)
 
 
 def final_fit(table, k: int, *, image_shape, noise, mask, lo: float, hi: float, seed: int, maps: dict, fgrid):
@@ -405,7 +412,7 @@ def main(argv=None) -> int:
     p.add_argument("--final-fit", action="store_true",
                    help="also fit, after every batch, what a run stopped there reports (the fit stage's "
                         "selection of auto on every outcome so far) and score that (the headline figures); "
-                        "the design fits' own scores stay under 'design'")
+                        "the design fits' own scores go to 'design_fit_scores' in the results")
     p.add_argument("--workers", type=int, default=2)
     p.add_argument("--seed", type=int, default=16)
     p.add_argument("--out", default=None, help="results folder (default results/adaptive, or "
@@ -846,9 +853,7 @@ def pool_adaptive_task(task: dict) -> dict:
         region_depths = {"deep half": ("le", thr), "shallow half": ("gt", thr)}
 
     def scored(post, m50_draws, fgrid, curves) -> dict:
-        ok = np.isfinite(m50_draws)
-        q = (np.percentile(m50_draws[ok], [2.275, 15.865, 50, 84.135, 97.725]) if ok.mean() >= 0.5
-             else [np.nan] * 5)
+        q = _m50_quantiles(m50_draws)
         est = {"": (q[2], fgrid, np.median(curves, axis=0))}
         for region, thr in region_depths.items():
             est[region] = _region_estimate(post, fgrid, thr)
