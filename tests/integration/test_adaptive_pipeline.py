@@ -246,6 +246,12 @@ def test_a_reported_interval_wider_than_the_target_is_recorded_and_logged():
                                                 "meets_target": False}
     assert ad["kinds"]["buldisk"]["reported"]["meets_target"] is True
     assert len(lines) == 1 and "point" in lines[0] and "0.0120" in lines[0]
+    # a kind whose design did not reach the target already says so: its wider reported interval is recorded, not logged
+    lines = []
+    ad = summary()
+    ad["kinds"]["point"]["reached"] = False
+    _adaptive_reported(ad, kinds, lines.append)
+    assert ad["kinds"]["point"]["reported"]["meets_target"] is False and not lines
     # a target on f: the half-width is recorded, not judged
     lines = []
     ad = summary("f")
