@@ -24,11 +24,16 @@ Example::
     python benchmarks/bench_spline_tau.py --scene honesty --truth two_populations --n 3000 --reps 24
     python benchmarks/bench_spline_tau.py --scene analytic --work /tmp/sa4/work --n 10000 --reps 10
     python benchmarks/bench_spline_tau.py --scene narrow --n 10000 --reps 16 [--draws resampled]
+
+``--taus`` sets the grid; ``--dump FILE`` keeps every replicate's per-tau evidence and draws, and
+``--combine FILE ...`` scores the best evidence over several such files (the same replicates fitted
+under different priors, ``results/spline_tau/prior_variants/``).
 """
 
 from __future__ import annotations
 
 import argparse
+import pickle
 import sys
 import warnings
 from collections import defaultdict
@@ -140,6 +145,48 @@ def rules(rows, rng):
     return out
 
 
+def _dump(a, payload) -> None:
+    """Write every replicate's per-tau rows so far to ``--dump`` (rewritten after each replicate)."""
+    if a.dump:
+        tmp = Path(a.dump).with_suffix(".part")
+        with open(tmp, "wb") as fh:
+            pickle.dump(payload, fh)
+        tmp.replace(a.dump)
+
+
+def combine(paths, log):
+    """Score the evidence's choice over the union of several ``--dump`` files' grids, replicate by replicate.
+
+    Each file holds the same replicates fitted under one prior (for example the prior variants of
+    ``results/spline_tau/prior_variants/``); per replicate the (file, tau) of highest Laplace evidence
+    is kept, as a selection over both the prior and tau would.
+    """
+    dumps = []
+    for p in paths:
+        with open(p, "rb") as fh:
+            dumps.append(pickle.load(fh))
+    nrep = min(len(d["rows"]) for d in dumps)
+    for label, use in [(Path(p).name, [i]) for i, p in enumerate(paths)] + [("best evidence over all", range(len(paths)))]:
+        qs = [max(((row["evidence"], row["q"]) for i in use for row in dumps[i]["rows"][r]), key=lambda c: c[0])[1]
+              for r in range(nrep)]
+        if "ref" in dumps[0]:
+            ref = dumps[0]["ref"]
+            m = np.array([np.mean(q["m50"]) for q in qs])
+            log(f"  {label:<28s} m50 rmse {1e3 * np.sqrt(np.mean((m - ref) ** 2)):5.2f}  "
+                f"sd {1e3 * np.median([np.std(q['m50']) for q in qs]):5.2f}  (mmag, {nrep} replicates)")
+            continue
+        tq, parts = dumps[0]["truth_q"], []
+        for k in qs[0]:
+            if tq.get(k) is None:
+                continue
+            v = [np.asarray(q[k], float) for q in qs]
+            mean = np.array([np.nanmean(x) for x in v])
+            sd = np.median([np.nanstd(x) for x in v])
+            cov68 = np.mean([np.nanpercentile(x, 16) <= tq[k] <= np.nanpercentile(x, 84) for x in v])
+            parts.append(f"{k} {(mean.mean() - tq[k]) / sd:+.2f} {cov68:.2f} {1e3 * np.sqrt(np.mean((mean - tq[k]) ** 2)):5.1f}")
+        log(f"  {label:<28s} " + " | ".join(parts))
+
+
 def honesty(a, log):
     import bench_honesty as H
     from comest_bayes.bayes.fit import targeted_quantities
@@ -166,8 +213,10 @@ def honesty(a, log):
         model = CompletenessModel(spec, compress_for(spec, cov, out, meta=meta))
         qfn = targeted_quantities(Footprint.from_histogram(hist, meta.get("sigma_ref")),
                                   [q["mag_bright"], q["mag_faint"]], lo, hi)
-        rows = tau_sweep(model, qfn, seed=int_seed_for(a.seed, "honesty", a.truth, a.n, rep, "fit"), draws=a.draws)
+        rows = tau_sweep(model, qfn, seed=int_seed_for(a.seed, "honesty", a.truth, a.n, rep, "fit"), draws=a.draws,
+                         taus=a.taus)
         all_rows.append(rows)
+        _dump(a, {"truth_q": q, "rows": all_rows})
         for name, qd in rules(rows, np.random.default_rng(rep)).items():
             scores[name].append(qd)
         log(f"  replicate {rep}: evidence picks tau {rows[int(np.argmax([r['evidence'] for r in rows]))]['tau']:g}, "
@@ -203,8 +252,9 @@ def _m50_rules(a, log, tables, ref: float, lo: float, hi: float, label: str):
         cov, out, meta = covariates_from_outcomes({"mag": mag, "detected": det}, image_shape=None)
         model = CompletenessModel(spec, compress_for(spec, cov, out, meta=meta))
         qfn = targeted_quantities(one_cell, _probe_magnitudes(cov.m, out), lo, hi)
-        rows = tau_sweep(model, qfn, seed=1 + rep, draws=a.draws)
+        rows = tau_sweep(model, qfn, seed=1 + rep, draws=a.draws, taus=a.taus)
         all_rows.append(rows)
+        _dump(a, {"ref": ref, "rows": all_rows})
         for name, qd in rules(rows, np.random.default_rng(rep)).items():
             scores[name].append(qd["m50"])
         log(f"  replicate {rep}: evidence picks tau {rows[int(np.argmax([r['evidence'] for r in rows]))]['tau']:g}, "
@@ -251,7 +301,12 @@ def narrow(a, log):
 
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    p.add_argument("--scene", choices=("honesty", "analytic", "narrow"), required=True)
+    p.add_argument("--scene", choices=("honesty", "analytic", "narrow"))
+    p.add_argument("--taus", type=lambda v: tuple(float(x) for x in v.split(",")), default=TAUS,
+                   help="comma-separated grid of tau (default %(default)s)")
+    p.add_argument("--dump", help="write every replicate's per-tau rows (evidence, draws) to this pickle")
+    p.add_argument("--combine", nargs="+", metavar="DUMP",
+                   help="instead of fitting: score the best evidence over the union of these --dump files")
     p.add_argument("--truth", default="two_populations", help="honesty truth name")
     p.add_argument("--n", type=int, default=3000)
     p.add_argument("--reps", type=int, default=24)
@@ -262,11 +317,16 @@ def main(argv=None) -> int:
     p.add_argument("--draws", choices=("laplace", "resampled"), default="laplace",
                    help="score each tau on its Laplace draws (default) or on those draws importance-resampled")
     a = p.parse_args(argv)
+    log = lambda s: print(s, flush=True)  # noqa: E731
+    if a.combine:
+        combine(a.combine, log)
+        return 0
+    if a.scene is None:
+        p.error("--scene is required unless --combine is given")
     from comest_bayes.pipeline import runtime
 
     runtime.configure(threads=1)
     warnings.simplefilter("ignore")
-    log = lambda s: print(s, flush=True)  # noqa: E731
     {"honesty": honesty, "analytic": analytic, "narrow": narrow}[a.scene](a, log)
     return 0
 
