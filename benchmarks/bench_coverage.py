@@ -4,7 +4,9 @@ Every replicate draws N injections (magnitudes uniform in [22.5, 26.5], depth
 ``d ~ N(0, 0.3)`` mag) with outcomes from a known ``logistic_depth``
 completeness (m50_0 = 24.5, w = 0.2, A = 0.97, floor = 0.01, beta_depth = 1),
 fits the ``logistic_depth`` model (MAP, Laplace, and with ``--method emcee``
-an emcee posterior to ``--min-ess``), and checks whether the central 68% and
+an emcee posterior to ``--min-ess``; with ``--method importance`` the way a run
+samples a chosen model: binomial cells from ``compress_for``, then importance
+sampling from the Laplace approximation with emcee as the fallback), and checks whether the central 68% and
 95% posterior intervals contain the truth for m50 at the reference depth
 (``m50_0``), m50 at a depth of +0.3 mag, and f at three magnitudes at that
 depth.  The empirical coverage over replicates is compared with the nominal
@@ -12,7 +14,7 @@ level; a calibrated posterior gives Binomial(R, level) / R.
 
 Usage::
 
-    python benchmarks/bench_coverage.py [--nrep 200] [--n 1500] [--method emcee|laplace]
+    python benchmarks/bench_coverage.py [--nrep 200] [--n 1500] [--method emcee|laplace|importance]
         [--min-ess 1000] [--out benchmarks/results/coverage.json]
 
 Writes the JSON and a PNG chart (nominal vs empirical coverage with binomial
@@ -36,9 +38,9 @@ from scipy import special, stats
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
-from comest_bayes.bayes.inference import fit_map, laplace, sample_posterior  # noqa: E402
+from comest_bayes.bayes.inference import fit, fit_map, laplace, sample_posterior  # noqa: E402
 from comest_bayes.bayes.model import CompletenessModel
-from comest_bayes.bayes.outcomes import Covariates, uncompressed
+from comest_bayes.bayes.outcomes import Covariates, compress_for, uncompressed
 from comest_bayes.seeding import int_seed_for, rng_for  # noqa: E402
 
 TRUTH = {"m50_0": 24.5, "w": 0.2, "A": 0.97, "floor": 0.01, "beta_depth": 1.0}
@@ -73,6 +75,21 @@ def posterior_values(model, draws) -> np.ndarray:
     return np.column_stack([phys["m50_0"], m50_d, f])
 
 
+def fit_replicate(args, cov, det, seed: int):
+    """The model, its posterior draws and the sampler's diagnostics (None for Laplace draws)."""
+    if args.method == "importance":  # as a run samples its chosen model
+        model = CompletenessModel("logistic_depth", compress_for("logistic_depth", cov, det))
+        post = fit(model, seed=seed, nstarts=2, sampler="auto", min_ess=args.min_ess).posterior
+        return model, post.samples, post.diagnostics
+    model = CompletenessModel("logistic_depth", uncompressed(cov, det))
+    mp = fit_map(model, seed=seed, nstarts=2)
+    lap = laplace(model, mp.theta)
+    if args.method == "emcee":
+        post = sample_posterior(model, lap, seed=seed, min_ess=args.min_ess, chunk=300)
+        return model, post.samples, post.diagnostics
+    return model, rng_for(seed, "laplace").multivariate_normal(lap.mean, lap.cov, 4000), None
+
+
 def run(args) -> dict:
     t_all = time.perf_counter()
     tv = truths()
@@ -81,19 +98,13 @@ def run(args) -> dict:
     for r in range(args.nrep):
         t0 = time.perf_counter()
         cov, det = replicate(args.seed, r, args.n)
-        model = CompletenessModel("logistic_depth", uncompressed(cov, det))
         seed = int_seed_for(args.seed, "fit", r)
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")
-            mp = fit_map(model, seed=seed, nstarts=2)
-            lap = laplace(model, mp.theta)
-            if args.method == "emcee":
-                post = sample_posterior(model, lap, seed=seed, min_ess=args.min_ess, chunk=300)
-                draws = post.samples
-                converged.append(bool(post.diagnostics.converged))
-                ess_min.append(float(np.min(post.diagnostics.ess)))
-            else:
-                draws = rng_for(seed, "laplace").multivariate_normal(lap.mean, lap.cov, 4000)
+            model, draws, diag = fit_replicate(args, cov, det, seed)
+        if diag is not None:
+            converged.append(bool(diag.converged))
+            ess_min.append(float(np.min(diag.ess)))
         values = posterior_values(model, draws)
         for lev in LEVELS:
             q = np.percentile(values, [50 * (1 - lev), 50 * (1 + lev)], axis=0)
@@ -147,7 +158,7 @@ def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("--nrep", type=int, default=200)
     p.add_argument("--n", type=int, default=1500, help="injections per replicate")
-    p.add_argument("--method", choices=("emcee", "laplace"), default="emcee")
+    p.add_argument("--method", choices=("emcee", "laplace", "importance"), default="emcee")
     p.add_argument("--min-ess", type=float, default=1000)
     p.add_argument("--seed", type=int, default=2024)
     p.add_argument("--out", default=str(Path(__file__).resolve().parent / "results" / "coverage.json"))
