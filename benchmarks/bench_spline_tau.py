@@ -175,16 +175,22 @@ def combine(paths, log):
             log(f"  {label:<28s} m50 rmse {1e3 * np.sqrt(np.mean((m - ref) ** 2)):5.2f}  "
                 f"sd {1e3 * np.median([np.std(q['m50']) for q in qs]):5.2f}  (mmag, {nrep} replicates)")
             continue
-        tq, parts = dumps[0]["truth_q"], []
-        for k in qs[0]:
-            if tq.get(k) is None:
-                continue
-            v = [np.asarray(q[k], float) for q in qs]
-            mean = np.array([np.nanmean(x) for x in v])
-            sd = np.median([np.nanstd(x) for x in v])
-            cov68 = np.mean([np.nanpercentile(x, 16) <= tq[k] <= np.nanpercentile(x, 84) for x in v])
-            parts.append(f"{k} {(mean.mean() - tq[k]) / sd:+.2f} {cov68:.2f} {1e3 * np.sqrt(np.mean((mean - tq[k]) ** 2)):5.1f}")
-        log(f"  {label:<28s} " + " | ".join(parts))
+        log(f"  {label:<28s} " + _score_line(qs, dumps[0]["truth_q"]))
+
+
+def _score_line(reps, truth) -> str:
+    """Per quantity with a truth: bias / median posterior sd, 68% coverage and RMSE x 1000 over the replicates."""
+    parts = []
+    for k in reps[0]:
+        if truth.get(k) is None:
+            continue
+        v = [np.asarray(r[k], float) for r in reps]
+        mean = np.array([np.nanmean(x) for x in v])
+        sd = np.median([np.nanstd(x) for x in v])
+        cov68 = np.mean([np.nanpercentile(x, 16) <= truth[k] <= np.nanpercentile(x, 84) for x in v])
+        parts.append(f"{k} {(mean.mean() - truth[k]) / sd:+.2f} {cov68:.2f} "
+                     f"{1e3 * np.sqrt(np.mean((mean - truth[k]) ** 2)):5.1f}")
+    return " | ".join(parts)
 
 
 def honesty(a, log):
@@ -224,16 +230,7 @@ def honesty(a, log):
     log(f"{a.truth}, N = {a.n}, {a.reps} replicates, {a.draws} draws: bias / posterior sd, 68% coverage, RMSE x 1000")
     log(psis_summary(all_rows))
     for name, reps in scores.items():
-        parts = []
-        for k in reps[0]:
-            if q.get(k) is None:
-                continue
-            v = [np.asarray(r[k], float) for r in reps]
-            mean = np.array([np.nanmean(x) for x in v])
-            sd = np.median([np.nanstd(x) for x in v])
-            cov68 = np.mean([np.nanpercentile(x, 16) <= q[k] <= np.nanpercentile(x, 84) for x in v])
-            parts.append(f"{k} {(mean.mean() - q[k]) / sd:+.2f} {cov68:.2f} {1e3 * np.sqrt(np.mean((mean - q[k]) ** 2)):5.1f}")
-        log(f"  {name:<17s} " + " | ".join(parts))
+        log(f"  {name:<17s} " + _score_line(reps, q))
 
 
 def _m50_rules(a, log, tables, ref: float, lo: float, hi: float, label: str):
