@@ -71,7 +71,9 @@ def format_info(info: dict) -> str:
         c = k.get("counts") or {}
         lines.append(f"{kind}: {c.get('detected', 0)}/{c.get('usable', 0)} usable injections detected in "
                      f"{c.get('realizations', 0)} realizations, {c.get('false', 0)} false detections")
-        lines.append(f"  m50 binned: {_mag(k.get('m50_binned'))}")
+        sd = k.get("m50_binned_sd")
+        lines.append(f"  m50 binned: {_mag(k.get('m50_binned'))}"
+                     + (f" +- {sd:.3f} (binomial noise of its two bins)" if sd is not None else ""))
         m = k.get("model")
         if m and m.get("skipped"):
             lines.append(f"  completeness model: skipped ({m['skipped']})")

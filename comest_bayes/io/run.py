@@ -376,7 +376,8 @@ def _facts(run: "Run") -> dict:
         model = model_facts(entry.get("model"))
         purity = model_facts(entry.get("purity_model"))
         counts = entry.get("counts") or {}
-        kinds[kind] = {"counts": counts, "m50_binned": entry.get("m50_binned"), "mag_range": entry.get("mag_range"),
+        kinds[kind] = {"counts": counts, "m50_binned": entry.get("m50_binned"),
+                       "m50_binned_sd": entry.get("m50_binned_sd"), "mag_range": entry.get("mag_range"),
                        "model": model, "purity_model": purity}
         for label, m in (("completeness", model), ("purity", purity)):
             for w in (m or {}).get("warnings", []):

@@ -32,6 +32,7 @@ __all__ = [
     "first_crossing",
     "first_crossings",
     "magnitude_at",
+    "magnitude_at_sd",
     "default_map_mag_edges",
     "transition_map_mag_edges",
     "map_bin_pixels",
@@ -514,6 +515,43 @@ def magnitude_at(ratio: BinnedRatio, level: float = 0.5) -> float:
     magnitude m50; NaN when the curve does not cross ``level``.
     """
     return first_crossing(ratio.centers, ratio.ratio, level)
+
+
+def magnitude_at_sd(ratio: BinnedRatio, level: float = 0.5) -> float:
+    """Standard deviation of :func:`magnitude_at` from the binomial noise of its two bins (delta method).
+
+    The crossing interpolates between the last bin at or above ``level`` (centre ``c_i``, ratio
+    ``f_i`` of ``n_i``) and the next non-empty one (``c_j``, ``f_j``, ``n_j``):
+    ``m = c_i + (f_i - level) (c_j - c_i) / (f_i - f_j)``.  Its variance to first order is
+    ``sum_b (dm/df_b)^2 f_b (1 - f_b) / n_b`` over the two bins, with
+    ``dm/df_i = (c_j - c_i)(level - f_j) / (f_i - f_j)^2`` and
+    ``dm/df_j = (c_j - c_i)(f_i - level) / (f_i - f_j)^2``; a bin at 0 or 1 is given the variance
+    of one count, ``1 / n_b^2``, not zero.
+
+    It describes the noise only, not the interpolation's bias, which grows with the bin width
+    against the transition's curvature; that bias dominates once the sd falls to a few mmag
+    (``benchmarks/README.md``, speed against accuracy).  On white-noise injections with a
+    0.045-mag transition and 0.1-mag bins, m50 / sd had an rms of 0.93-1.04 from 1,000 to 30,000
+    injections.  NaN where :func:`magnitude_at` is.
+    """
+    ok = np.isfinite(ratio.ratio) & (ratio.n > 0)
+    c = np.asarray(ratio.centers, float)[ok]
+    f = np.asarray(ratio.ratio, float)[ok]
+    n = np.asarray(ratio.n, float)[ok]
+    above = f >= level
+    if not above.any():
+        return float("nan")
+    after = np.flatnonzero(~above & (np.arange(f.size) > np.argmax(above)))
+    if after.size == 0:
+        return float("nan")
+    j = int(after[0])
+    i = j - 1
+    span, gap = c[j] - c[i], f[i] - f[j]
+    grad = np.array([span * (level - f[j]), span * (f[i] - level)]) / gap ** 2
+    fb, nb = f[[i, j]], n[[i, j]]
+    pq = fb * (1.0 - fb)
+    var = np.where(pq > 0, pq, 1.0 / nb) / nb
+    return float(np.sqrt(np.sum(grad ** 2 * var)))
 
 
 def default_map_mag_edges(m50: float, width: float = 1.0) -> np.ndarray:

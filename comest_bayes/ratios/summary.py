@@ -84,7 +84,8 @@ def kind_summary(merged: "MergedCatalogs", edges: np.ndarray, config: RunConfig,
         "near_unusable": int(np.asarray(det["near_unusable"], bool).sum()) if "near_unusable" in det.colnames else 0,
     }
     out = {"counts": counts, "mag_range": [float(edges[0]), float(edges[-1])], "binned": binned,
-           "m50_binned": _none_if_nan(R.magnitude_at(b["completeness"], 0.5))}
+           "m50_binned": _none_if_nan(R.magnitude_at(b["completeness"], 0.5)),
+           "m50_binned_sd": _none_if_nan(R.magnitude_at_sd(b["completeness"], 0.5))}
     if maps_file is not None:
         out["maps"] = {"file": maps_file, "mag_edges": [float(v) for v in map_edges],
                        "bin_arcmin": config.ratios.map_bin_arcmin}

@@ -219,7 +219,9 @@ def _summary_section(r: _Report) -> None:
         model = k.get("model") or {}
         pmodel = k.get("purity_model") or {}
         rows.append([kind, c.get("usable", "?"), c.get("realizations", "?"), c.get("detected", "?"),
-                     c.get("false", "?"), _num(k.get("m50_binned")),
+                     c.get("false", "?"), _num(k.get("m50_binned")) + (
+                         f" ± {k['m50_binned_sd']:.3f}" if k.get("m50_binned_sd") is not None
+                         else ""),
                      _interval(model.get("m50")) if model.get("name") else "no model",
                      _interval(model.get("m80")) if model.get("name") else "",
                      _interval(model.get("m90")) if model.get("name") else "",

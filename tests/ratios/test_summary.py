@@ -103,9 +103,12 @@ def test_intervals_are_wilson_for_the_ratios_and_poisson_for_the_rate(entry):
 def test_m50_is_the_interpolated_crossing_of_one_half(entry):
     # 0.75 at 21.5 and 0.25 at 22.5: linear interpolation crosses 0.5 at 22.0
     assert entry["m50_binned"] == pytest.approx(22.0)
+    # its sd from the two bins (3 of 4 and 1 of 4, 1 mag apart): dm/df = 0.25 / 0.5^2 = 1 for each
+    assert entry["m50_binned_sd"] == pytest.approx(np.sqrt(2 * 0.75 * 0.25 / 4))
     merged = _merged()
     merged.injected["detected"] = True  # never falls below one half: null, not a number
-    assert kind_summary(merged, EDGES, load_config(), nreal=2, maps_file=None)["m50_binned"] is None
+    flat = kind_summary(merged, EDGES, load_config(), nreal=2, maps_file=None)
+    assert flat["m50_binned"] is None and flat["m50_binned_sd"] is None
 
 
 def test_the_maps_entry_names_the_file_and_its_planes():
