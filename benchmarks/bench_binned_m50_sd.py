@@ -1,0 +1,63 @@
+"""Benchmark: is the binned m50's standard deviation (``ratios.binned.magnitude_at_sd``) calibrated?
+
+Draws disjoint subsets of N injections from the narrow-range white-noise pool of
+``bench_speed_accuracy.py --work DIR`` (``DIR/analytic_run``; realizations not held out), bins
+each subset's completeness in 0.1-mag bins over the pool's range as a run does, and compares
+``(m50_binned - reference) / m50_binned_sd`` with a unit normal.  The reference is the m50 of the
+held-out third of the pool (``--ref``; 25.3958 for the pools of the 2026-11 runs).  Prints, per N,
+the fraction of |z| <= 1 and <= 2, the rms of z and the median sd.
+
+Usage::
+
+    python benchmarks/bench_binned_m50_sd.py --work /tmp/sa/work [--sizes 1000 3000 10000 30000] [--reps 60]
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
+
+
+def main(argv=None) -> int:
+    from astropy.table import Table
+
+    from comest_bayes.ratios import binned as R
+
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    p.add_argument("--work", required=True, help="bench_speed_accuracy.py --work directory")
+    p.add_argument("--ref", type=float, default=25.3958, help="m50 of the held-out third of the pool")
+    p.add_argument("--sizes", nargs="+", type=int, default=[1000, 3000, 10000, 30000])
+    p.add_argument("--reps", type=int, default=60, help="at most this many disjoint subsets per size")
+    p.add_argument("--bin", type=float, default=0.1, help="bin width, mag")
+    a = p.parse_args(argv)
+
+    o = Table.read(Path(a.work) / "analytic_run" / "catalogs" / "point_outcomes.fits")
+    mag = np.asarray(o["mag"], float)
+    det = np.asarray(o["detected"], bool)
+    pool = np.random.default_rng(7).permutation(np.flatnonzero(np.asarray(o["realization"]) % 3 != 0))
+    edges = R.magnitude_edges(float(mag.min()), float(mag.max()), a.bin)
+    print(f"pool of {pool.size} injections (held out: {mag.size - pool.size}); reference m50 {a.ref:.4f}; "
+          f"{a.bin:g}-mag bins")
+    for n in a.sizes:
+        reps = min(a.reps, pool.size // n)
+        z, sds = [], []
+        for r in range(reps):
+            s = pool[r * n:(r + 1) * n]
+            c = R.completeness(mag[s], det[s], edges)
+            sd = R.magnitude_at_sd(c, 0.5)
+            z.append((R.magnitude_at(c, 0.5) - a.ref) / sd)
+            sds.append(sd)
+        z = np.asarray(z)
+        print(f"  N {n:6d}, {reps:3d} subsets: |z| <= 1 in {np.mean(np.abs(z) <= 1):.2f}, |z| <= 2 in "
+              f"{np.mean(np.abs(z) <= 2):.2f}, rms z {np.sqrt(np.mean(z * z)):.2f}, mean z {np.mean(z):+.2f}, "
+              f"median sd {1e3 * np.median(sds):.1f} mmag")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
