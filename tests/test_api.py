@@ -196,11 +196,13 @@ def test_the_readme_example_prints_the_numbers_of_summary_json(readme_run):
     where, printed = readme_run
     summary = json.loads((where / "run1" / "summary.json").read_text())["kinds"]["point"]
     model = summary["model"]
-    line = re.search(r"point: binned m50 ([\d.]+); (\w+) m50 ([\d.]+) \[([\d.]+), ([\d.]+)\] \(68%\)", printed)
+    line = re.search(r"point: binned m50 ([\d.]+) \+- ([\d.]+); (\w+) m50 ([\d.]+) \[([\d.]+), ([\d.]+)\] \(68%\)",
+                     printed)
     assert line, printed
     assert float(line.group(1)) == pytest.approx(summary["m50_binned"], abs=0.0051)
-    assert line.group(2) == model["name"] == "logistic_depth"
-    for i, key in ((3, "median"), (4, "lo68"), (5, "hi68")):
+    assert float(line.group(2)) == pytest.approx(summary["m50_binned_sd"], abs=0.0051)
+    assert line.group(3) == model["name"] == "logistic_depth"
+    for i, key in ((4, "median"), (5, "lo68"), (6, "hi68")):
         assert float(line.group(i)) == pytest.approx(model["m50"][key], abs=0.0051)
     counts = re.search(r"(\d+) of (\d+) injections detected", printed)
     assert (int(counts.group(1)), int(counts.group(2))) == (summary["counts"]["detected"], summary["counts"]["usable"])
@@ -222,7 +224,7 @@ def test_the_run_object_holds_summary_json_and_reads_the_run(readme_run):
     entry = raw["kinds"]["point"]
     assert run.status == "finished" and list(run.kinds) == ["point"] == list(raw["kinds"])
     point = run.summary("point")
-    assert point.m50_binned == entry["m50_binned"]
+    assert point.m50_binned == entry["m50_binned"] and point.m50_binned_sd == entry["m50_binned_sd"] > 0
     assert point.model.name == entry["model"]["name"] and point.model.requested == "logistic_depth"
     for key in ("median", "lo68", "hi68", "lo95", "hi95"):
         assert getattr(point.m50_model, key) == entry["model"]["m50"][key]

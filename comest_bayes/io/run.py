@@ -147,6 +147,8 @@ class KindSummary:
     purity_model: ModelSummary | None
     counts: Mapping
     mag_range: tuple | None = None
+    #: sd of ``m50_binned`` from the binomial noise of the two bins it interpolates (not its bias)
+    m50_binned_sd: float | None = None
 
     @property
     def m50_model(self) -> Interval | None:
@@ -258,7 +260,8 @@ class Run:
                                       model=ModelSummary.from_info(k.get("model")),
                                       purity_model=ModelSummary.from_info(k.get("purity_model")),
                                       counts=MappingProxyType(dict(k.get("counts") or {})),
-                                      mag_range=None if rng is None else tuple(rng))
+                                      mag_range=None if rng is None else tuple(rng),
+                                      m50_binned_sd=k.get("m50_binned_sd"))
         return MappingProxyType(kinds)
 
     def _kind(self, kind: str) -> KindSummary:

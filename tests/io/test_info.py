@@ -45,7 +45,7 @@ def finished_run(tmp_path):
     summary = {"image": run.state["image"], "depth": {"point_source_5sigma": 24.18},
                "failed_realizations": ["buldisk #2"],
                "kinds": {"point": {"counts": {"usable": 900, "detected": 700, "false": 3, "realizations": 3},
-                                   "m50_binned": 23.97, "mag_range": [19.2, 25.8],
+                                   "m50_binned": 23.97, "m50_binned_sd": 0.0071, "mag_range": [19.2, 25.8],
                                    "model": _entry("spline_depth", 23.957, 23.949, 23.964, 23.942, 23.971),
                                    "purity_model": {"name": None, "requested": "purity",
                                                     "skipped": "too few false detections"}},
@@ -73,7 +73,9 @@ def test_info_prints_a_finished_runs_results_and_writes_nothing(finished_run, ca
            "fit_completeness_point (4.0 s)" in out
     assert "realizations on disk: point 3/3, buldisk 3/3" in out
     assert "point: 700/900 usable injections detected in 3 realizations, 3 false detections" in out
-    assert "m50 binned: 23.97" in out and "m50 binned: 23.26" in out
+    # the sd where the summary has one (point), none where it does not (buldisk: a run before the sd existed)
+    assert "m50 binned: 23.97 +- 0.007 (binomial noise of its two bins)" in out
+    assert "m50 binned: 23.26\n" in out
     assert "completeness model: spline_depth (chosen among logistic, spline_depth)" in out
     assert "m50: 23.957 [68%: 23.949, 23.964] [95%: 23.942, 23.971]" in out
     assert "purity model: skipped (too few false detections)" in out

@@ -31,6 +31,7 @@ def test_open_reads_the_records_and_the_run_configuration(tmp_path):
     assert run.kind_entry("buldisk") == {} and run.kind_entry("sersic")["m50_binned"] == 23.4
     assert run.file(layout.SUMMARY).is_file() and run.summary_json() == SUMMARY
     assert run.status == "finished" and run.summary("sersic").m50_binned == 23.4
+    assert run.summary("sersic").m50_binned_sd is None  # a summary written before the sd existed
     partial = Run.open(_write_run(tmp_path / "partial"))
     assert partial.summary_record is None and partial.kind_names == [] and partial.status == "partial"
     with pytest.raises(InputFileError, match="does not exist; the run is partial"):
