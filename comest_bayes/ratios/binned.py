@@ -464,17 +464,25 @@ def first_crossings(centers, curves, level: float) -> np.ndarray:
     """
     c = np.asarray(centers, dtype=float)
     r = np.atleast_2d(np.asarray(curves, dtype=float))
-    above = r >= level
-    start = np.argmax(above, axis=1)
-    after = ~above & (np.arange(r.shape[1])[None, :] > start[:, None])
-    ok = above.any(axis=1) & after.any(axis=1)
     out = np.full(r.shape[0], np.nan)
-    rows = np.flatnonzero(ok)
-    j = np.argmax(after[rows], axis=1)
-    i = j - 1  # r[i] >= level: j is the first point below level after the first one above
+    rows, i, j = _crossing_points(r, level)
     ri, rj = r[rows, i], r[rows, j]
     out[rows] = c[i] + (ri - level) / np.where(ri != rj, ri - rj, 1.0) * (c[j] - c[i])
     return out
+
+
+def _crossing_points(r: np.ndarray, level: float):
+    """The rows of ``r`` (S, M) that cross ``level`` and, per such row, the two points interpolated.
+
+    From the brightest point at or above ``level``, ``j`` is the first fainter point below it and
+    ``i = j - 1`` the one before it (``r[i] >= level``).  Returns ``(rows, i, j)``.
+    """
+    above = r >= level
+    start = np.argmax(above, axis=1)
+    after = ~above & (np.arange(r.shape[1])[None, :] > start[:, None])
+    rows = np.flatnonzero(above.any(axis=1) & after.any(axis=1))
+    j = np.argmax(after[rows], axis=1)
+    return rows, j - 1, j
 
 
 def first_crossing(centers, values, level: float) -> float:
@@ -534,18 +542,14 @@ def magnitude_at_sd(ratio: BinnedRatio, level: float = 0.5) -> float:
     0.045-mag transition and 0.1-mag bins, m50 / sd had an rms of 0.93-1.04 from 1,000 to 30,000
     injections.  NaN where :func:`magnitude_at` is.
     """
-    ok = np.isfinite(ratio.ratio) & (ratio.n > 0)
+    ok = np.isfinite(ratio.ratio)  # the points magnitude_at interpolates between: empty bins dropped
     c = np.asarray(ratio.centers, float)[ok]
     f = np.asarray(ratio.ratio, float)[ok]
     n = np.asarray(ratio.n, float)[ok]
-    above = f >= level
-    if not above.any():
+    rows, i_, j_ = _crossing_points(f[None, :], level)
+    if rows.size == 0:
         return float("nan")
-    after = np.flatnonzero(~above & (np.arange(f.size) > np.argmax(above)))
-    if after.size == 0:
-        return float("nan")
-    j = int(after[0])
-    i = j - 1
+    i, j = int(i_[0]), int(j_[0])
     span, gap = c[j] - c[i], f[i] - f[j]
     grad = np.array([span * (level - f[j]), span * (f[i] - level)]) / gap ** 2
     fb, nb = f[[i, j]], n[[i, j]]
