@@ -917,8 +917,7 @@ def width_scores(model, theta, basis, detected) -> tuple[np.ndarray, np.ndarray,
     score_t = np.einsum("gk,gkd->d", n_grp, grads)
     score_s = x.T @ gw.reshape(-1)[grp]                 # each injection's log-w gradient times its terms
     cnt = np.bincount(index, minlength=g).astype(np.float64)
-    sums = np.zeros((g, k))
-    np.add.at(sums, index, x)                                                 # (G, K): the terms summed per cell
+    sums = np.stack([np.bincount(index, weights=x[:, j], minlength=g) for j in range(k)], axis=1)  # (G, K)
     e2 = (prob * gw * gw).sum(axis=1)                                         # E[(dl/dlog w)^2] per member
     i_tt = np.einsum("gk,gkd,gke->de", prob * cnt[:, None], grads, grads)
     i_ts = np.einsum("gk,gkd,gj->dj", prob * gw, grads, sums)                 # (D, K)
