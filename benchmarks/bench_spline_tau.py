@@ -170,12 +170,16 @@ def combine(paths, log):
         qs = [max(((row["evidence"], row["q"]) for i in use for row in dumps[i]["rows"][r]), key=lambda c: c[0])[1]
               for r in range(nrep)]
         if "ref" in dumps[0]:
-            ref = dumps[0]["ref"]
-            m = np.array([np.mean(q["m50"]) for q in qs])
-            log(f"  {label:<28s} m50 rmse {1e3 * np.sqrt(np.mean((m - ref) ** 2)):5.2f}  "
-                f"sd {1e3 * np.median([np.std(q['m50']) for q in qs]):5.2f}  (mmag, {nrep} replicates)")
+            log(f"  {label:<28s} m50 {_m50_line([q['m50'] for q in qs], dumps[0]['ref'])}  (mmag, {nrep} replicates)")
             continue
         log(f"  {label:<28s} " + _score_line(qs, dumps[0]["truth_q"]))
+
+
+def _m50_line(draws, ref: float) -> str:
+    """RMSE of the replicates' posterior-mean m50 against ``ref`` and their median posterior sd, mmag."""
+    mean = np.array([np.mean(x) for x in draws])
+    return (f"rmse {1e3 * np.sqrt(np.mean((mean - ref) ** 2)):5.2f}  "
+            f"sd {1e3 * np.median([np.std(x) for x in draws]):5.2f}")
 
 
 def _score_line(reps, truth) -> str:
@@ -261,9 +265,7 @@ def _m50_rules(a, log, tables, ref: float, lo: float, hi: float, label: str):
         f"against {ref:.4f}")
     log(psis_summary(all_rows))
     for name, v in scores.items():
-        mean = np.array([np.mean(x) for x in v])
-        log(f"  {name:<17s} rmse {1e3 * np.sqrt(np.mean((mean - ref) ** 2)):5.2f}  "
-            f"sd {1e3 * np.median([np.std(x) for x in v]):5.2f}")
+        log(f"  {name:<17s} {_m50_line(v, ref)}")
 
 
 def analytic(a, log):
