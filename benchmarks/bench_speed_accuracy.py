@@ -105,6 +105,7 @@ from comest_bayes.bayes.posterior import crossing_magnitudes
 HERE = Path(__file__).resolve().parent
 METHODS = ("binned", "auto", "map", "laplace", "emcee")
 BIN_WIDTH = 0.1          # the published method's bins (mag)
+BIN_PHASES = 10          # grid offsets (0, 0.01, ..., 0.09 mag) the binned m50 is also scored at
 REF_BIN_WIDTH = 0.05     # reference curve of the demo scene (mag)
 CURVE_WINDOW = (-1.5, 1.0)  # curve error window around the reference m50 (mag)
 GRID_STEP = 0.02
@@ -197,6 +198,20 @@ def binned_estimate(mag, det, mag_range) -> dict:
             "lo68": np.asarray(out["68"].lower, float), "hi68": np.asarray(out["68"].upper, float),
             "lo95": np.asarray(out["95"].lower, float), "hi95": np.asarray(out["95"].upper, float),
             "m50": R.magnitude_at(br, 0.5)}
+
+
+def binned_m50_at_phase(mag, det, mag_range, phase: float, width: float = BIN_WIDTH) -> float:
+    """Binned m50 on the grid whose edges sit at ``mag_range[0] + phase + k * width``.
+
+    ``phase`` = 0 is :func:`binned_estimate`'s grid; otherwise the first bin starts
+    ``width - phase`` brighter than the injected range (partly empty, as on a grid fixed in
+    advance).  When the transition is narrower than a bin, the interpolated m50's error depends
+    on where the nearest edge falls relative to m50, and a user cannot choose that phase without
+    knowing m50: the benchmark scores the binned method at every phase as well as at its own.
+    """
+    lo, hi = mag_range
+    start = lo if phase == 0 else lo + phase - width
+    return float(R.magnitude_at(R.binned_ratio(mag, det, R.magnitude_edges(start, hi, width)), 0.5))
 
 
 def binned_curve(est: dict, grid: np.ndarray) -> np.ndarray:
@@ -368,7 +383,8 @@ def score_binned(b: dict, ref: dict, cpu: float) -> dict:
     m50_ref = ref["m50"]
     grid = _grid(m50_ref)
     f_ref = np.interp(grid, ref["grid"], ref["curve"])
-    out = {"m50_err": b["m50"] - m50_ref, "curve_rms": float(np.sqrt(np.nanmean((binned_curve(b, grid) - f_ref) ** 2))),
+    out = {"m50_err": b["m50"] - m50_ref, "m50_err_phases": [v - m50_ref for v in b.get("m50_phases", [])],
+           "curve_rms": float(np.sqrt(np.nanmean((binned_curve(b, grid) - f_ref) ** 2))),
            "cpu": cpu, "f_cover68": [], "f_cover95": []}
     # the bins holding the probe magnitudes, against the reference averaged over each bin
     for pm in ref["probes"]:
@@ -437,6 +453,20 @@ def injection_cpu(spi: dict) -> tuple[float, float]:
     return total * (1.0 - det_share), total * det_share
 
 
+def replicate_subsets(n: int, exclude: np.ndarray | None, *, seed: int, budget: int,
+                      max_replicates: int) -> list[np.ndarray]:
+    """The replicates' disjoint subsets of a pool of ``n`` injections (sorted row indices).
+
+    One permutation of the rows not held out (``exclude``), seeded by ``seed``, cut into
+    consecutive blocks of ``budget``; at most ``max_replicates`` blocks.  The same for every
+    budget's first blocks, so rescoring scripts (``bench_binned_phase.py``) see the same subsets.
+    """
+    idx = np.arange(n) if exclude is None else np.flatnonzero(~exclude)
+    idx = np.random.default_rng(seed).permutation(idx)
+    nrep = min(max_replicates, len(idx) // budget)
+    return [np.sort(idx[r * budget:(r + 1) * budget]) for r in range(nrep)]
+
+
 def evaluate(pool: dict, refs: dict, *, spec_name: str, budgets, max_replicates: int, seed: int, emcee_max: int,
              log, maps: dict, methods=METHODS, exclude: np.ndarray | None = None, trace=None) -> dict:
     """Errors, calibration and costs per reference, method and budget.
@@ -452,8 +482,6 @@ def evaluate(pool: dict, refs: dict, *, spec_name: str, budgets, max_replicates:
     out = pool["outcomes"]
     mag = np.asarray(out["mag"], float)
     det = np.asarray(out["detected"], bool)
-    idx = np.arange(len(mag)) if exclude is None else np.flatnonzero(~exclude)
-    idx = np.random.default_rng(seed).permutation(idx)
     fitted = [m for m in ("map", "laplace", "emcee") if m in methods]
     for r in refs.values():
         r["probes"] = probe_magnitudes(r)
@@ -462,19 +490,22 @@ def evaluate(pool: dict, refs: dict, *, spec_name: str, budgets, max_replicates:
     inj_cost, det_cost = injection_cpu(pool["seconds_per_injection"])
     results = {name: {} for name in refs}
     for budget in budgets:
-        nrep = min(max_replicates, len(idx) // budget)
+        subsets = replicate_subsets(len(mag), exclude, seed=seed, budget=budget, max_replicates=max_replicates)
+        nrep = len(subsets)
         if nrep < 1:
             log(f"  budget {budget}: pool too small, skipped")
             continue
         scores = {name: {m: [] for m in METHODS} for name in refs}
         chosen = []
         t0 = time.perf_counter()
-        for r in range(nrep):
-            sub = np.sort(idx[r * budget:(r + 1) * budget])
+        for r, sub in enumerate(subsets):
             rows = out[sub]
             c0 = time.process_time()
             b = binned_estimate(mag[sub], det[sub], pool["mag_range"])
             t_b = time.process_time() - c0
+            b["m50_phases"] = [b["m50"]] + [binned_m50_at_phase(mag[sub], det[sub], pool["mag_range"],
+                                                                k * BIN_WIDTH / BIN_PHASES)
+                                            for k in range(1, BIN_PHASES)]
             rseed = seed + 1000 * r + budget
             est = {}
             if fitted:
@@ -517,6 +548,11 @@ def evaluate(pool: dict, refs: dict, *, spec_name: str, budgets, max_replicates:
                     "f_coverage68": frac("f_cover68"),
                     "f_coverage95": frac("f_cover95"),
                 }
+            phase_err = np.array([d["m50_err_phases"] for d in scores[name]["binned"]], float)
+            if phase_err.size:
+                # mean squared error over replicates and grid phases (see binned_m50_at_phase)
+                row["binned"]["m50_rmse_phase_averaged"] = float(np.sqrt(np.nanmean(phase_err ** 2)))
+                row["binned"]["m50_rmse_per_phase"] = [float(v) for v in np.sqrt(np.nanmean(phase_err ** 2, axis=0))]
             if "auto" in row:
                 row["auto"]["chosen"] = {c: chosen.count(c) for c in sorted(set(chosen))}
                 row["auto"]["chosen_per_replicate"] = list(chosen)
@@ -565,6 +601,10 @@ def headline(results: dict) -> dict:
             rows.append({"budget": b, "replicates": rm["replicates"], "binned_m50_rmse": rb["m50_rmse"],
                          **({"earlier_run": rm["earlier_run"]["command"]} if "earlier_run" in rm else {}),
                          "model_m50_rmse": rm["m50_rmse"], "m50_efficiency": eff("m50_rmse"),
+                         **({} if "earlier_run" in rm or not rb.get("m50_rmse_phase_averaged") else
+                            {"binned_m50_rmse_phase_averaged": rb["m50_rmse_phase_averaged"],
+                             "m50_efficiency_phase_averaged": float((rb["m50_rmse_phase_averaged"]
+                                                                     / rm["m50_rmse"]) ** 2)}),
                          "binned_curve_rmse": rb["curve_rmse"], "model_curve_rmse": rm["curve_rmse"],
                          "curve_efficiency": eff("curve_rmse")})
         out[model] = rows
@@ -791,6 +831,9 @@ def main(argv=None) -> int:
             log(f"{scene} vs {s['primary_reference']}, {model}: relative efficiency (binned RMSE / model RMSE)^2 "
                 "per budget, m50 | curve: " + "; ".join(
                     f"{r['budget']}: {_fmt(r['m50_efficiency'])} | {_fmt(r['curve_efficiency'])}" for r in rows))
+            if any("m50_efficiency_phase_averaged" in r for r in rows):
+                log(f"  {model}'s m50 efficiency against the binned m50 averaged over {BIN_PHASES} grid phases: "
+                    + "; ".join(f"{r['budget']}: {_fmt(r.get('m50_efficiency_phase_averaged'))}" for r in rows))
     return 0
 
 
