@@ -35,15 +35,30 @@ def main(argv=None) -> int:
     p.add_argument("--sizes", nargs="+", type=int, default=[1000, 3000, 10000, 30000])
     p.add_argument("--reps", type=int, default=60, help="at most this many disjoint subsets per size")
     p.add_argument("--bin", type=float, default=0.1, help="bin width, mag")
+    p.add_argument("--phases", nargs="+", type=float, default=[0.0],
+                   help="offsets of the bin grid (mag, 0 <= phase < --bin): the edges sit at the pool's brightest "
+                        "magnitude + phase + k * bin; 0 is a run's grid.  On a transition narrower than a bin the "
+                        "interpolated m50 is biased by an amount that depends on the phase, which the sd omits")
     a = p.parse_args(argv)
 
     o = Table.read(Path(a.work) / "analytic_run" / "catalogs" / "point_outcomes.fits")
     mag = np.asarray(o["mag"], float)
     det = np.asarray(o["detected"], bool)
     pool = np.random.default_rng(7).permutation(np.flatnonzero(np.asarray(o["realization"]) % 3 != 0))
-    edges = R.magnitude_edges(float(mag.min()), float(mag.max()), a.bin)
     print(f"pool of {pool.size} injections (held out: {mag.size - pool.size}); reference m50 {a.ref:.4f}; "
           f"{a.bin:g}-mag bins")
+    for phase in a.phases:
+        if not 0 <= phase < a.bin:
+            raise SystemExit(f"--phases: {phase} is outside [0, {a.bin})")
+        start = float(mag.min()) + (phase - a.bin if phase > 0 else 0.0)
+        edges = R.magnitude_edges(start, float(mag.max()), a.bin)
+        if len(a.phases) > 1 or phase > 0:
+            print(f" grid phase {phase:.3f} mag (edges at {start:.3f} + k * {a.bin:g})")
+        _score_sizes(R, mag, det, pool, edges, a)
+    return 0
+
+
+def _score_sizes(R, mag, det, pool, edges, a) -> None:
     for n in a.sizes:
         reps = min(a.reps, pool.size // n)
         z, sds, bands = [], [], []
@@ -59,7 +74,6 @@ def main(argv=None) -> int:
         print(f"  N {n:6d}, {reps:3d} subsets: |z| <= 1 in {np.mean(np.abs(z) <= 1):.2f}, |z| <= 2 in "
               f"{np.mean(np.abs(z) <= 2):.2f}, rms z {np.sqrt(np.mean(z * z)):.2f}, mean z {np.mean(z):+.2f}, "
               f"median sd {1e3 * np.median(sds):.1f} mmag; 68% band crossings cover {np.mean(bands):.2f}")
-    return 0
 
 
 if __name__ == "__main__":
