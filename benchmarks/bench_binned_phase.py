@@ -37,11 +37,31 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from bench_speed_accuracy import (BIN_PHASES, BIN_WIDTH, REF_BIN_WIDTH, binned_m50_at_phase,  # noqa: E402
                                   pool_reference, replicate_subsets)
 
+from comest_bayes.ratios import binned as R  # noqa: E402
+
 
 def read_trace(path: Path) -> list[dict]:
     opener = gzip.open if path.suffix == ".gz" else open
     with opener(path, "rt") as f:
         return [json.loads(line) for line in f if line.strip()]
+
+
+def noise_free_bias(m50: float, scale: float, mag_range, phases) -> list[float]:
+    """The binned m50's error on a logistic ``1 / (1 + exp((m - m50) / scale))`` without noise.
+
+    Every bin's ratio is the curve's exact average over the bin (closed form through the
+    softplus), as infinitely many uniform injections would give; m50 is then interpolated as
+    ``ratios.binned.magnitude_at`` does (``first_crossing``).  What is left is the interpolation's bias alone.
+    """
+    lo, hi = mag_range
+    out = []
+    for phase in phases:
+        edges = R.magnitude_edges(lo if phase == 0 else lo + phase - BIN_WIDTH, hi, BIN_WIDTH)
+        a, b = edges[:-1], edges[1:]
+        # integral of the curve over [a, b] = scale * (softplus((m50 - a) / scale) - softplus((m50 - b) / scale))
+        ratio = scale * (np.logaddexp(0, (m50 - a) / scale) - np.logaddexp(0, (m50 - b) / scale)) / (b - a)
+        out.append(float(R.first_crossing(0.5 * (a + b), ratio, 0.5)) - m50)
+    return out
 
 
 def main(argv=None) -> int:
@@ -51,6 +71,9 @@ def main(argv=None) -> int:
     p.add_argument("--seed", type=int, default=11, help="the benchmark's --seed (draws the subsets)")
     p.add_argument("--phases", type=int, default=BIN_PHASES, help="grid phases, evenly spaced over one bin")
     p.add_argument("--bootstrap", type=int, default=2000)
+    p.add_argument("--logistic-scale", type=float, default=0.045,
+                   help="also print the interpolation bias alone, on a noise-free logistic of this scale (mag) "
+                        "centred on the reference m50 (0.045: the narrow scene's fitted width; 0 to skip)")
     p.add_argument("--out", default=None, help="JSON file for the figures")
     a = p.parse_args(argv)
 
@@ -71,10 +94,16 @@ def main(argv=None) -> int:
     print(f"pool {len(mag)} injections, {int(held.sum())} held out; reference m50 {ref:.4f} "
           f"(its grid's phase moves it over {1e3 * (max(ref_spread) - min(ref_spread)):.1f} mmag)")
     print(f"phases (mag): {', '.join(f'{v:.3f}' for v in phases)}")
+    bias0 = []
+    if a.logistic_scale > 0:
+        bias0 = noise_free_bias(ref, a.logistic_scale, mag_range, phases)
+        print(f"noise-free logistic of scale {a.logistic_scale} mag: binned m50 - m50 per phase (mmag): "
+              + " ".join(f"{1e3 * v:+.2f}" for v in bias0))
     print("budget reps | auto RMSE | binned RMSE per phase (mmag) | eff at phase 0 | phase-averaged "
           "[bootstrap 68%] | min-max over phases")
     report = {"run": str(run), "trace": str(a.trace), "reference_m50": ref, "reference_phase_m50s": ref_spread,
-              "phases": phases, "bin_width": BIN_WIDTH, "budgets": {}}
+              "phases": phases, "bin_width": BIN_WIDTH, "logistic_scale": a.logistic_scale,
+              "noise_free_logistic_bias_per_phase": bias0, "budgets": {}}
     for budget in budgets:
         rows = sorted((t for t in trace if t["budget"] == budget), key=lambda t: t["replicate"])
         subsets = replicate_subsets(len(mag), held, seed=a.seed, budget=budget, max_replicates=len(rows))
