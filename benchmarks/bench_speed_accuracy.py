@@ -685,6 +685,9 @@ def chart(report: dict, path: Path) -> None:
                         axes[2, j].semilogx(bb, get("m50_coverage68"), ls="-", label=f"{m_label}: m50", **style)
                     axes[2, j].semilogx(bb, get("f_coverage68"), ls=":", mfc="none",
                                         label=f"{m_label}: f at 3 probes", **style)
+                    if m == "binned" and all(r.get("m50_rmse_phase_averaged") for _, r in rows):
+                        axes[0, j].loglog(cpu, get("m50_rmse_phase_averaged"), ls=":", color=colors[m], marker="s",
+                                          mfc="none", ms=5, label=f"binned, averaged over {BIN_PHASES} grid offsets")
                     if m == "binned":
                         for x, y, b in zip(cpu, get("m50_rmse"), bb):
                             axes[0, j].annotate(f"{b // 1000}k" if b >= 1000 else str(b), (x, y), fontsize=7,
