@@ -29,6 +29,9 @@ def main(argv=None) -> int:
 
     from comest_bayes.ratios import binned as R
 
+    sys.path.insert(0, str(Path(__file__).resolve().parent))
+    from bench_speed_accuracy import phase_edges
+
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("--work", required=True, help="bench_speed_accuracy.py --work directory")
     p.add_argument("--ref", type=float, default=25.3958, help="m50 of the held-out third of the pool")
@@ -50,10 +53,9 @@ def main(argv=None) -> int:
     for phase in a.phases:
         if not 0 <= phase < a.bin:
             raise SystemExit(f"--phases: {phase} is outside [0, {a.bin})")
-        start = float(mag.min()) + (phase - a.bin if phase > 0 else 0.0)
-        edges = R.magnitude_edges(start, float(mag.max()), a.bin)
+        edges = phase_edges((float(mag.min()), float(mag.max())), phase, a.bin)
         if len(a.phases) > 1 or phase > 0:
-            print(f" grid phase {phase:.3f} mag (edges at {start:.3f} + k * {a.bin:g})")
+            print(f" grid phase {phase:.3f} mag (edges at {edges[0]:.3f} + k * {a.bin:g})")
         _score_sizes(R, mag, det, pool, edges, a)
     return 0
 

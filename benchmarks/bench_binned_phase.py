@@ -35,7 +35,7 @@ from astropy.table import Table
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from bench_speed_accuracy import (BIN_PHASES, BIN_WIDTH, REF_BIN_WIDTH, binned_m50_at_phase,  # noqa: E402
-                                  pool_reference, replicate_subsets)
+                                  phase_edges, pool_reference, replicate_subsets)
 
 from comest_bayes.ratios import binned as R  # noqa: E402
 
@@ -51,12 +51,12 @@ def noise_free_bias(m50: float, scale: float, mag_range, phases) -> list[float]:
 
     Every bin's ratio is the curve's exact average over the bin (closed form through the
     softplus), as infinitely many uniform injections would give; m50 is then interpolated as
-    ``ratios.binned.magnitude_at`` does (``first_crossing``).  What is left is the interpolation's bias alone.
+    ``ratios.binned.magnitude_at`` does (``first_crossing``).  What is left is the interpolation's
+    bias alone.
     """
-    lo, hi = mag_range
     out = []
     for phase in phases:
-        edges = R.magnitude_edges(lo if phase == 0 else lo + phase - BIN_WIDTH, hi, BIN_WIDTH)
+        edges = phase_edges(mag_range, phase)
         a, b = edges[:-1], edges[1:]
         # integral of the curve over [a, b] = scale * (softplus((m50 - a) / scale) - softplus((m50 - b) / scale))
         ratio = scale * (np.logaddexp(0, (m50 - a) / scale) - np.logaddexp(0, (m50 - b) / scale)) / (b - a)

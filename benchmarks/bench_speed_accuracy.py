@@ -209,9 +209,13 @@ def binned_m50_at_phase(mag, det, mag_range, phase: float, width: float = BIN_WI
     on where the nearest edge falls relative to m50, and a user cannot choose that phase without
     knowing m50: the benchmark scores the binned method at every phase as well as at its own.
     """
+    return float(R.magnitude_at(R.binned_ratio(mag, det, phase_edges(mag_range, phase, width)), 0.5))
+
+
+def phase_edges(mag_range, phase: float, width: float = BIN_WIDTH) -> np.ndarray:
+    """Bin edges at ``mag_range[0] + phase + k * width`` covering ``mag_range`` (0 <= phase < width)."""
     lo, hi = mag_range
-    start = lo if phase == 0 else lo + phase - width
-    return float(R.magnitude_at(R.binned_ratio(mag, det, R.magnitude_edges(start, hi, width)), 0.5))
+    return R.magnitude_edges(lo if phase == 0 else lo + phase - width, hi, width)
 
 
 def binned_curve(est: dict, grid: np.ndarray) -> np.ndarray:
