@@ -11,7 +11,10 @@ This script takes a pool and a per-replicate trace written by ``bench_speed_accu
 rebuilds exactly the replicates' subsets (``replicate_subsets``; the benchmark's own grid must
 reproduce the trace's binned m50 to 1e-9 mag, or the script stops), recomputes the binned m50 on
 grids shifted by ``k * 0.1 / phases`` mag, and scores them and the trace's ``auto`` m50 against
-the same held-out reference the benchmark used.  No model is refitted.
+the held-out pool's reference (``bench_speed_accuracy.pool_reference``: its local-likelihood m50,
+which replaced the 0.05-mag binned m50 on 2026-11-28; ``bench_reference_m50.py``).  No model is
+refitted.  Because the reference's own error is common to every replicate and method, the
+efficiencies are also printed with the reference moved by -1 and +1 of its sd.
 
 Printed per budget: the RMSE of the model and of the binned m50 at every phase, the efficiency
 (RMSE_binned / RMSE_auto)^2 at the benchmark's phase and averaged over phases (mean squared
@@ -83,7 +86,8 @@ def main(argv=None) -> int:
     mag = np.asarray(out["mag"], float)
     det = np.asarray(out["detected"], bool)
     held = np.asarray(out["realization"]) % 3 == 0
-    ref = pool_reference(mag[held], det[held], mag_range)["m50"]
+    ref_info = pool_reference(mag[held], det[held], mag_range)
+    ref, ref_sd = ref_info["m50"], ref_info["m50_sd"]
     # the reference's own dependence on its grid's phase (0.05-mag bins, 1/3 of the pool)
     ref_spread = [binned_m50_at_phase(mag[held], det[held], mag_range, k * REF_BIN_WIDTH / 5, REF_BIN_WIDTH)
                   for k in range(5)]
@@ -91,8 +95,9 @@ def main(argv=None) -> int:
     trace = read_trace(Path(a.trace))
     budgets = sorted({t["budget"] for t in trace})
     rng = np.random.default_rng(a.seed)
-    print(f"pool {len(mag)} injections, {int(held.sum())} held out; reference m50 {ref:.4f} "
-          f"(its grid's phase moves it over {1e3 * (max(ref_spread) - min(ref_spread)):.1f} mmag)")
+    print(f"pool {len(mag)} injections, {int(held.sum())} held out; reference m50 {ref:.5f} +- {ref_sd:.5f} "
+          f"(local likelihood); the held-out pool's binned m50 is {ref_info['m50_binned']:.5f}, and its grid's "
+          f"phase moves it over {1e3 * (max(ref_spread) - min(ref_spread)):.1f} mmag")
     print(f"phases (mag): {', '.join(f'{v:.3f}' for v in phases)}")
     bias0 = []
     if a.logistic_scale > 0:
@@ -100,8 +105,11 @@ def main(argv=None) -> int:
         print(f"noise-free logistic of scale {a.logistic_scale} mag: binned m50 - m50 per phase (mmag): "
               + " ".join(f"{1e3 * v:+.2f}" for v in bias0))
     print("budget reps | auto RMSE | binned RMSE per phase (mmag) | eff at phase 0 | phase-averaged "
-          "[bootstrap 68%] | min-max over phases")
-    report = {"run": str(run), "trace": str(a.trace), "reference_m50": ref, "reference_phase_m50s": ref_spread,
+          "[bootstrap 68%] | min-max over phases | eff at phase 0 / averaged with the reference moved by "
+          "-1 sd, +1 sd")
+    report = {"run": str(run), "trace": str(a.trace), "reference_m50": ref, "reference_m50_sd": ref_sd,
+              "reference_m50_binned": ref_info["m50_binned"], "reference_source": ref_info["source"],
+              "reference_phase_m50s": ref_spread,
               "phases": phases, "bin_width": BIN_WIDTH, "logistic_scale": a.logistic_scale,
               "noise_free_logistic_bias_per_phase": bias0, "budgets": {}}
     for budget in budgets:
@@ -129,14 +137,22 @@ def main(argv=None) -> int:
             i = rng.integers(0, len(err_a), len(err_a))
             boot.append(np.mean(err_b[i] ** 2) / np.mean(err_a[i] ** 2))
         lo68, hi68 = np.percentile(boot, [15.87, 84.13])
+        # the reference's own error is common to every replicate and method: move it by its sd
+        shifted = {}
+        for tag, dr in (("minus_1sd", -ref_sd), ("plus_1sd", ref_sd)):
+            ma, mb = np.mean((err_a - dr) ** 2), np.mean((err_b - dr) ** 2, axis=0)
+            shifted[tag] = [float(mb[0] / ma), float(np.mean(mb) / ma)]
         print(f"{budget:>7d} {len(err_a):>3d} | {1e3 * np.sqrt(mse_a):5.2f} | "
               + " ".join(f"{1e3 * np.sqrt(v):5.2f}" for v in mse_b)
-              + f" | {eff[0]:5.2f} | {eff_avg:5.2f} [{lo68:.2f}, {hi68:.2f}] | {eff.min():.2f}-{eff.max():.2f}")
+              + f" | {eff[0]:5.2f} | {eff_avg:5.2f} [{lo68:.2f}, {hi68:.2f}] | {eff.min():.2f}-{eff.max():.2f}"
+              + f" | {shifted['minus_1sd'][0]:.2f} / {shifted['minus_1sd'][1]:.2f}, "
+                f"{shifted['plus_1sd'][0]:.2f} / {shifted['plus_1sd'][1]:.2f}")
         report["budgets"][str(budget)] = {
             "replicates": int(len(err_a)), "auto_rmse": float(np.sqrt(mse_a)),
             "binned_rmse_per_phase": [float(np.sqrt(v)) for v in mse_b],
             "efficiency_per_phase": [float(v) for v in eff], "efficiency_phase_averaged": eff_avg,
-            "efficiency_phase_averaged_bootstrap68": [float(lo68), float(hi68)]}
+            "efficiency_phase_averaged_bootstrap68": [float(lo68), float(hi68)],
+            "efficiency_phase0_and_averaged_reference_shifted": shifted}
     if a.out:
         Path(a.out).write_text(json.dumps(report, indent=1))
         print(f"written {a.out}")
