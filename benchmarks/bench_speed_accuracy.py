@@ -42,8 +42,10 @@ Two scenes:
     of a very large injection pool, which checks the prediction.
 ``demo``
     the built-in demo tile (depth gradient, chip gap, real-looking galaxy
-    population); the reference is the binned curve (0.05-mag bins) of a very
-    large injection pool held out from the budgets.
+    population); the reference is a very large injection pool held out from
+    the budgets: its binned curve (0.05-mag bins) and its m50 by local
+    likelihood (``local_m50``, unbiased where binning is not; see
+    ``bench_reference_m50.py``).
 
 How a budget is measured.  One large pool of realizations is injected and
 detected once per scene by the package's own pipeline (``run_pipeline``);
