@@ -92,6 +92,7 @@ import warnings
 from pathlib import Path
 
 import numpy as np
+from scipy.special import expit
 from astropy.io import fits
 from astropy.table import Table
 
@@ -458,13 +459,20 @@ def local_m50(mag, det, center: float, *, half_width: float,
         return float("nan"), float("nan")
     X = np.vander(t, degree + 1, increasing=True)
     b = np.zeros(degree + 1)
+    converged = False
     for _ in range(50):
-        p = 1.0 / (1.0 + np.exp(-(X @ b)))
+        p = expit(X @ b)
         H = (X * (p * (1 - p))[:, None]).T @ X
-        step = np.linalg.solve(H, X.T @ (y - p))
+        try:
+            step = np.linalg.solve(H, X.T @ (y - p))
+        except np.linalg.LinAlgError:
+            break
         b = b + step
         if np.max(np.abs(step)) < 1e-10:
+            converged = True
             break
+    if not converged:  # outcomes separated within the window: the likelihood has no maximum, no m50
+        return float("nan"), float("nan")
     roots = np.roots(b[::-1])
     roots = roots[np.abs(roots.imag) < 1e-9].real
     roots = roots[np.abs(roots) <= 1.0]
@@ -474,7 +482,7 @@ def local_m50(mag, det, center: float, *, half_width: float,
     # delta method: d r / d b_k = -r^k / P'(r)
     dpoly = sum(k * b[k] * r ** (k - 1) for k in range(1, degree + 1))
     g = -np.array([r ** k for k in range(degree + 1)]) / dpoly
-    p = 1.0 / (1.0 + np.exp(-(X @ b)))
+    p = expit(X @ b)
     cov = np.linalg.inv((X * (p * (1 - p))[:, None]).T @ X)
     return center + r * half_width, float(np.sqrt(g @ cov @ g)) * half_width
 

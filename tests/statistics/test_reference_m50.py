@@ -77,7 +77,10 @@ def test_its_error_bar_matches_its_scatter(bench):
 
 
 def test_degenerate_windows_give_nan_not_a_number_that_looks_right(bench):
-    """All detected, or too few outcomes in the window: no root to report."""
+    """All detected, too few outcomes in the window, or outcomes perfectly separated (the likelihood
+    has no maximum): no root to report."""
     m = np.linspace(25.2, 25.6, 1000)
     assert np.isnan(bench.local_m50(m, np.ones(m.size, bool), 25.4, half_width=0.1)[0])
     assert np.isnan(bench.local_m50(m[:20], np.arange(20) % 2 == 0, 25.4, half_width=0.1)[0])
+    with np.errstate(all="ignore"):
+        assert np.isnan(bench.local_m50(m, m < 25.41, 25.4, half_width=0.1)[0])
