@@ -21,7 +21,8 @@ from comest_bayes.config import RunConfig
 from comest_bayes.errors import InputError
 from comest_bayes.bayes.inference import IdentifiabilityWarning, fit, fit_map
 from comest_bayes.bayes.model import CompletenessModel
-from comest_bayes.bayes.outcomes import compress_for, covariate_warnings, covariates_from_outcomes
+from comest_bayes.bayes.outcomes import (compress_for, covariate_warnings, covariates_from_outcomes,
+                                         covariates_needed)
 from comest_bayes.bayes.spec import load_spec, resolve_candidates, resolve_width_candidates
 from comest_bayes.bayes.posterior import (CompletenessPosterior, Footprint, FootprintHistogram, average_crossings, average_prob, coarse_noise_map, footprint_sample)
 from comest_bayes.seeding import Stream, int_seed_for, rng_for
@@ -330,6 +331,15 @@ def fit_kind(outcomes: Table, *, kind: str, quantity: str, requested: str, confi
                           f"only bound the transition width from above, and its value (and the posterior's "
                           f"lower tail) is set by the prior on w. Inject more sources around m50 or treat w as "
                           f"an upper limit.", IdentifiabilityWarning, stacklevel=2)
+    if "depth" not in (meta.get("available") or ()):
+        # no injection carries a noise value: the depth covariate is 0 for every injection, and with no
+        # reference noise every footprint pixel sits at depth 0 as well (Footprint.from_histogram), so a
+        # depth term multiplies 0 everywhere: it changes no output, and its prior-only slope is no caveat
+        meta = {**meta, "inert": ("depth",)}
+        if any("depth" in covariates_needed(c) for c in (resolve_candidates(spec) if spec.is_selection else [spec])):
+            log(f"fit: {kind} {quantity}: the injections carry no detection noise, so the models' depth terms are "
+                "inert (depth 0 everywhere); give a noise column, or positions and a noise map, to let m50 "
+                "follow the depth")
     data = compress_for(spec, cov, outcome, meta=meta)
     seed = int_seed_for(config.seed, Stream.FIT, quantity, kind)
     candidates = resolve_candidates(spec) if spec.is_selection else [spec]

@@ -479,8 +479,9 @@ class CompletenessModel:
                              f"without resolving them (binned: {list(binned)}); compress with their grid steps, "
                              "or use compress_for(spec, ...).")
         available = data.meta.get("available")
+        inert = tuple(data.meta.get("inert", ()))  # groups the caller knows change no output (fit_kind)
         for group, label in (("depth", "depth (no usable noise column)"), ("size", "size (no half-light radii)")):
-            if group in need and available is not None and group not in available:
+            if group in need and available is not None and group not in available and group not in inert:
                 warnings.warn(f"model {spec.name!r} uses the {label}; that covariate is 0 for every injection, "
                               "so its slope is constrained by its prior only.", UserWarning, stacklevel=2)
         own = _spec_layout(spec)

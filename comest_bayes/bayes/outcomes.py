@@ -558,7 +558,10 @@ def covariate_warnings(spec, data: BinomialData) -> list[str]:
         :data:`SPREAD_MIN`; the matching slopes (``beta_depth``, ``w_depth``,
         the smooth coefficients, ``beta_size``) are then set by their priors,
         and maps or queries away from the sampled range are the prior's
-        extrapolation.  Empty when every used covariate varies.
+        extrapolation.  Empty when every used covariate varies.  Groups listed
+        in ``data.meta["inert"]`` are skipped: the caller knows they change no
+        output (``fit_kind`` marks the depth so when no injection has a noise
+        value, as every footprint pixel then sits at depth 0 too).
     """
     spec = load_spec(spec)
     specs = resolve_candidates(spec) if spec.is_selection else [spec]
@@ -567,7 +570,7 @@ def covariate_warnings(spec, data: BinomialData) -> list[str]:
         need.update(covariates_needed(s))
     cov = data.cov
     out = []
-    if "depth" in need:
+    if "depth" in need and "depth" not in tuple(data.meta.get("inert", ())):
         span = float(cov.depth.max() - cov.depth.min())
         if span < SPREAD_MIN["depth"]:
             out.append(f"the depth covariate spans only {span:.3g} mag over the {data.ntotal} injections (noise "

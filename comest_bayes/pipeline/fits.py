@@ -156,6 +156,30 @@ def _read_map(path, name: str) -> np.ndarray:
     raise InputError(f"{name} {str(path)!r} holds no 2-D image HDU.")
 
 
+def noise_at_positions(noise: np.ndarray, x, y, *, what: str) -> np.ndarray:
+    """The noise map at each position's nearest pixel (0-based), as a run's outcome table records it.
+
+    Non-finite positions give NaN (their rows are dropped by the fit with a warning).  Positions more
+    than half a pixel outside the map are an error: they are not pixels of this image (1-based
+    positions from SExtractor's ``X_IMAGE`` need 1 subtracted).
+    """
+    x = np.asarray(x, float)
+    y = np.asarray(y, float)
+    ny, nx = noise.shape
+    ok = np.isfinite(x) & np.isfinite(y)
+    outside = ok & ((x < -0.5) | (y < -0.5) | (x >= nx - 0.5) | (y >= ny - 0.5))
+    if outside.any():
+        raise InputError(f"{what}: {int(outside.sum())} of {x.size} positions lie outside the noise map "
+                         f"({ny} x {nx} pixels; x in [{np.min(x[ok]):.1f}, {np.max(x[ok]):.1f}], y in "
+                         f"[{np.min(y[ok]):.1f}, {np.max(y[ok]):.1f}]). Positions must be 0-based pixels of that "
+                         "map (subtract 1 from SExtractor's X_IMAGE / Y_IMAGE), or give a noise column.")
+    out = np.full(x.size, np.nan)
+    iy = np.floor(y[ok] + 0.5).astype(int)
+    ix = np.floor(x[ok] + 0.5).astype(int)
+    out[ok] = noise[np.clip(iy, 0, ny - 1), np.clip(ix, 0, nx - 1)]
+    return out
+
+
 def fit_outcome_file(path, out, *, kind: str = "injections", model: str = "auto", columns: dict | None = None,
                      noise_map=None, mask=None, image_shape=None, seed: int = 0, mag_bin: float = 0.1,
                      log=lambda s: None) -> dict:
@@ -183,7 +207,9 @@ def fit_outcome_file(path, out, *, kind: str = "injections", model: str = "auto"
         FITS maps of the detection noise and bad pixels (non-zero = bad) of
         the image: the image average then runs over every unmasked pixel.
         Without them it runs over the injections' own positions and noise
-        values (the footprint as the injections sampled it).
+        values (the footprint as the injections sampled it).  With a noise
+        map and positions but no noise column, each injection's noise is
+        read from the map at its nearest pixel (:func:`noise_at_positions`).
     image_shape : (ny, nx), optional
         Needed with positions but without a noise map or mask (default:
         from the maps, else the largest position + 1).
@@ -237,6 +263,9 @@ def fit_outcome_file(path, out, *, kind: str = "injections", model: str = "auto"
         shape = tuple(int(v) for v in image_shape)
     if shape is None and has_xy:
         shape = (int(np.nanmax(table["y"])) + 2, int(np.nanmax(table["x"])) + 2)
+    noise_from_map = noise is not None and has_xy and "noise" not in table.colnames
+    if noise_from_map:
+        table["noise"] = noise_at_positions(noise, table["x"], table["y"], what=f"outcome table {str(path)!r}")
     if shape is None:
         shape = (2, 2)  # no positions: the image plays no role
     config = RunConfig(seed=int(seed), fit=FitConfig(model=model))
@@ -261,6 +290,9 @@ def fit_outcome_file(path, out, *, kind: str = "injections", model: str = "auto"
     where = {"maps": "every unmasked pixel of the maps", "injections": "the injections' positions and noise",
              "uniform": "a uniform footprint"}[footprint]
     log(f"fit: {len(table)} outcomes of {kind} from {path.name}; model {model}; image average over {where}")
+    if noise_from_map:
+        log(f"fit: no {cols['noise']!r} column: each injection's detection noise is read from the noise map at its "
+            "position (nearest pixel, as a run's outcome table records it)")
     points = (table["x"], table["y"], table["noise"]) if footprint == "injections" else None
     post, entry = fit_kind(table, kind=kind, quantity="completeness", requested=model, config=config,
                            image_shape=shape, noise=noise if noise is not None else np.ones(shape, np.float32),

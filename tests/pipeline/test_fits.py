@@ -9,7 +9,8 @@ from astropy.table import Table
 
 from comest_bayes.config import load_config
 from comest_bayes.io import layout
-from comest_bayes.pipeline.fits import OUTCOME_COLUMNS, fit_outcome_file, fit_task
+from comest_bayes.errors import InputError
+from comest_bayes.pipeline.fits import OUTCOME_COLUMNS, fit_outcome_file, fit_task, noise_at_positions
 
 
 def _logistic_outcomes(n=3000, seed=3, m50=24.0, w=0.25):
@@ -35,6 +36,69 @@ def test_an_outcome_file_is_fitted_and_every_product_is_written(tmp_path):
     assert (out / layout.FIGURES_DIR / "stars_completeness.png").is_file()
     binned = summary["kinds"]["stars"]["completeness"]
     assert sum(binned["n"]) == 3000
+
+
+def test_the_noise_map_is_read_at_each_position_as_a_run_records_it():
+    """Nearest pixel (floor(x + 0.5)), NaN for a non-finite position, and a clear error for a position
+    outside the map (a 1-based catalogue, say) instead of a clipped, wrong noise."""
+    noise = np.arange(12.0).reshape(3, 4)  # noise[iy, ix] = 4 iy + ix
+    got = noise_at_positions(noise, [0.0, 0.49, 0.51, 3.4, np.nan, -0.5], [0.0, 1.2, 1.6, 2.49, 1.0, 0.0], what="t")
+    assert np.array_equal(got[[0, 1, 2, 3, 5]], [0.0, 4.0, 9.0, 11.0, 0.0]) and np.isnan(got[4])
+    with pytest.raises(InputError, match=r"1 of 2 positions lie outside the noise map \(3 x 4 pixels.*X_IMAGE"):
+        noise_at_positions(noise, [1.0, 3.6], [1.0, 1.0], what="t")
+
+
+def _depth_gradient_outcomes(n=6000, seed=2):
+    """A logistic of width 0.2 whose m50 follows the depth of a noise map rising 2.5x across the image."""
+    rng = np.random.default_rng(seed)
+    yy, xx = np.mgrid[0:60, 0:80]
+    noise = (1.0 + 1.5 * xx / 80.0).astype(np.float32)
+    mag = rng.uniform(21.0, 27.0, n)
+    x, y = rng.uniform(0, 79, n), rng.uniform(0, 59, n)
+    sig = noise[np.floor(y + 0.5).astype(int), np.floor(x + 0.5).astype(int)]
+    det = rng.uniform(size=n) < 1.0 / (1.0 + np.exp((mag - (24.0 - 2.5 * np.log10(sig))) / 0.2))
+    return Table({"mag": mag, "detected": det, "x": x, "y": y}), sig, noise
+
+
+def test_with_positions_and_a_noise_map_the_noise_column_is_read_from_the_map(tmp_path):
+    """Balrog-like outcomes (positions, no noise) with the image's noise map fit exactly as the same table
+    with the noise column a run would have written: same depth covariate, same posterior."""
+    from astropy.io import fits as afits
+
+    table, sig, noise = _depth_gradient_outcomes()
+    afits.writeto(tmp_path / "noise.fits", noise)
+    table.write(tmp_path / "nonoise.fits")
+    with_noise = table.copy()
+    with_noise["noise"] = sig
+    with_noise.write(tmp_path / "noise_col.fits")
+    logs = []
+    a = fit_outcome_file(tmp_path / "nonoise.fits", tmp_path / "a", model="logistic_depth",
+                         noise_map=tmp_path / "noise.fits", seed=4, log=logs.append)
+    b = fit_outcome_file(tmp_path / "noise_col.fits", tmp_path / "b", model="logistic_depth",
+                         noise_map=tmp_path / "noise.fits", seed=4)
+    ma, mb = a["kinds"]["injections"]["model"], b["kinds"]["injections"]["model"]
+    assert ma["m50"] == mb["m50"] and ma["parameters"] == mb["parameters"]
+    assert any("read from the noise map at its position" in line for line in logs)
+    # the depth slope is measured, not the prior's: m50 moves by -2.5 log10(sigma) (slope -1 per unit of
+    # the depth covariate d = -2.5 log10(sigma / sigma_ref), i.e. +1 per magnitude of depth)
+    beta = ma["parameters"]["beta_depth"]
+    sd = 0.5 * (beta["hi68"] - beta["lo68"])
+    assert abs(beta["median"] - 1.0) < 4 * sd and sd < 0.1
+
+
+def test_without_any_noise_the_depth_terms_are_inert_and_not_a_warning(tmp_path, recwarn):
+    """No noise column and no noise map: a depth rung's depth is 0 for every injection and footprint pixel,
+    so it changes nothing; the fit says so once in its log and warns about nothing."""
+    table, _, _ = _depth_gradient_outcomes(n=3000)
+    table.remove_columns(["x", "y"])
+    table.write(tmp_path / "magonly.fits")
+    logs = []
+    summary = fit_outcome_file(tmp_path / "magonly.fits", tmp_path / "out", model="logistic_depth", seed=1,
+                               log=logs.append)
+    entry = summary["kinds"]["injections"]["model"]
+    assert not [str(w.message) for w in recwarn if "depth" in str(w.message)]
+    assert not [w for w in entry["warnings"] if "depth" in w]
+    assert sum("depth terms are inert" in line for line in logs) == 1
 
 
 def test_the_worker_task_skips_a_purity_fit_with_too_few_false_detections(tmp_path):
