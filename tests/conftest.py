@@ -37,6 +37,21 @@ REPO_ROOT = Path(__file__).resolve().parents[1]
 #: The real-data directory beside the repository (not part of it).
 SHARED_DATA = REPO_ROOT / ".." / "shared" / "data"
 
+def load_benchmark(name: str):
+    """``benchmarks/<name>.py`` as a module (the benchmarks folder is no package), for the tests of
+    the helpers a benchmark's figures rest on."""
+    import importlib.util
+    import sys
+
+    bench_dir = REPO_ROOT / "benchmarks"
+    if str(bench_dir) not in sys.path:  # a benchmark may import its sibling scripts
+        sys.path.insert(0, str(bench_dir))
+    spec = importlib.util.spec_from_file_location(f"{name}_for_tests", bench_dir / f"{name}.py")
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    return mod
+
+
 #: FWHM of a Gaussian in units of its sigma, 2 sqrt(2 ln 2).
 FWHM_PER_SIGMA = 2.0 * np.sqrt(2.0 * np.log(2.0))
 

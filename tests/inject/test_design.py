@@ -10,7 +10,7 @@ import pytest
 from comest_bayes.pipeline.adaptive import AdaptiveSettings
 from comest_bayes.inject.design import (MagnitudeDesign, curves_at, design_from_draws, uniform_design, variance_reduction)
 from comest_bayes.errors import InputError
-from conftest import REPO_ROOT
+from conftest import load_benchmark
 
 
 def logistic_draws(grid, m50=24.0, sd_m50=0.05, w=0.2, n=2000, seed=0):
@@ -140,14 +140,8 @@ def test_bad_design_inputs_are_refused():
 
 
 def _bench_adaptive():
-    """benchmarks/bench_adaptive.py as a module (the benchmarks folder is no package)."""
-    import importlib.util
-
-    path = REPO_ROOT / "benchmarks" / "bench_adaptive.py"
-    spec = importlib.util.spec_from_file_location("bench_adaptive_for_tests", path)
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
-    return mod
+    """benchmarks/bench_adaptive.py as a module."""
+    return load_benchmark("bench_adaptive")
 
 
 def test_a_uniform_pool_feeds_a_design_exactly_without_reuse():

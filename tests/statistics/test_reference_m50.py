@@ -6,25 +6,17 @@ an error bar that matches its scatter, and a binned reference that does not have
 """
 from __future__ import annotations
 
-import importlib.util
-from pathlib import Path
-
 import numpy as np
 import pytest
 from scipy.optimize import brentq
 from scipy.special import expit, ndtr
 
-REPO_ROOT = Path(__file__).resolve().parents[2]
+from conftest import load_benchmark
 
 
 @pytest.fixture(scope="module")
 def bench():
-    """benchmarks/bench_speed_accuracy.py as a module (the benchmarks folder is no package)."""
-    path = REPO_ROOT / "benchmarks" / "bench_speed_accuracy.py"
-    spec = importlib.util.spec_from_file_location("bench_speed_accuracy_for_tests", path)
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
-    return mod
+    return load_benchmark("bench_speed_accuracy")
 
 
 M50 = 25.3941
