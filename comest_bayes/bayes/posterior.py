@@ -514,10 +514,9 @@ class CompletenessPosterior:
     def wcs(self):
         if self.wcs_header is None:
             return None
-        from astropy.io import fits
-        from astropy.wcs import WCS
+        from comest_bayes.io.image import wcs_from_stored_header
 
-        return WCS(fits.Header.fromstring(self.wcs_header), relax=True)
+        return wcs_from_stored_header(self.wcs_header)
 
     def _depth(self, x, y) -> np.ndarray:
         if self.noise_grid is None or self.meta.get("sigma_ref") in (None, 0):

@@ -22,7 +22,7 @@ from comest_bayes.errors import InputError, InputFileError
 
 __all__ = [
     "ImageData", "load_image", "parse_bunit", "sky_statistics", "decide_gain", "Units", "SkyStats",
-    "GainDecision", "ZP_KEYWORDS", "GAIN_KEYWORDS", "SATURATION_KEYWORDS", "EXPTIME_KEYWORDS",
+    "GainDecision", "ZP_KEYWORDS", "GAIN_KEYWORDS", "SATURATION_KEYWORDS", "EXPTIME_KEYWORDS", "wcs_from_stored_header",
 ]
 
 #: Header keywords searched for a photometric zero point, in this order.
@@ -620,6 +620,21 @@ def _celestial_wcs(header):
     if not wcs.has_celestial:
         return None, "; ".join(notes) or None, None
     return wcs.celestial, "; ".join(notes) or None, None
+
+
+def wcs_from_stored_header(text: str) -> WCS:
+    """The WCS of an image header a run stored as text, rebuilt without repeating astropy's fixes.
+
+    Astropy's fixes to the header (e.g. 'obsfix' setting OBSGEO-B/L/H on a JWST image) were judged
+    once, when the run read the image (:func:`load_image`: the harmless ones dropped, the others a
+    line in the run's log); every later rebuild (a realization's injection, the fit's maps) would
+    only print them again.
+    """
+    from astropy.wcs import FITSFixedWarning
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", FITSFixedWarning)
+        return WCS(fits.Header.fromstring(text), relax=True)
 
 
 def _wcs_pixel_scale(wcs, shape) -> float:

@@ -18,7 +18,6 @@ from pathlib import Path
 import numpy as np
 from astropy.io import fits
 from astropy.table import Table, vstack
-from astropy.wcs import WCS
 
 from comest_bayes.config import DetectionConfig, InjectionConfig, MatchingConfig
 from comest_bayes.errors import InputError
@@ -26,6 +25,7 @@ from comest_bayes.constants import FWHM_PER_SIGMA
 from comest_bayes.recover.matching import classify_detections, in_clean_zone, match_one_to_one
 from comest_bayes.seeding import Stream, int_seed_for, rng_for
 from comest_bayes.io import layout
+from comest_bayes.io.image import wcs_from_stored_header
 from comest_bayes.inject.psfmodel import make_psf
 from comest_bayes.inject.cosmos import load_cosmos
 from comest_bayes.detect.sep_backend import detect_with_backend
@@ -121,7 +121,7 @@ class RealizationResult:
 
 @functools.lru_cache(maxsize=4)
 def _wcs_from_text(text: str):
-    return WCS(fits.Header.fromstring(text), relax=True)
+    return wcs_from_stored_header(text)
 
 
 def _file_key(path: str) -> tuple:

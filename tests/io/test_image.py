@@ -962,3 +962,33 @@ def test_real_kids_maggies_zero_point_zero_is_plausible(shared_data):
     assert image.gain is None and "sky was subtracted" in image.gain_decision["reason"]
     with pytest.warns(UserWarning, match=r"zero point 25 \(--zp\) looks implausible: .* at 53\.\d mag"):
         load_image(shared_data / "kids" / "kidsviking_waves_2600px_r.fits", pixel_scale=0.2, zp=25.0)
+
+
+def test_a_stored_header_is_rebuilt_without_repeating_astropys_fixes():
+    """A run stores the image's header as text and rebuilds its WCS in every realization and in the fit.
+    Astropy's fixes (here 'obsfix', from OBSGEO-X/Y/Z as on JWST images) were judged when the image was
+    read; a rebuild must not print them again, and must give the same WCS."""
+    from astropy.wcs import WCS
+
+    from comest_bayes.bayes.posterior import CompletenessPosterior
+    from comest_bayes.io.image import wcs_from_stored_header
+
+    h = fits.Header()
+    for key, value in (("CTYPE1", "RA---TAN"), ("CTYPE2", "DEC--TAN"), ("CRVAL1", 3.5), ("CRVAL2", -30.4),
+                       ("CRPIX1", 5.0), ("CRPIX2", 5.0), ("CDELT1", -1e-5), ("CDELT2", 1e-5),
+                       ("OBSGEO-X", -1e8), ("OBSGEO-Y", 1e9), ("OBSGEO-Z", 5e8), ("MJD-OBS", 59000.0)):
+        h[key] = value
+    text = h.tostring()
+    with warnings.catch_warnings(record=True) as direct:
+        warnings.simplefilter("always")
+        reference = WCS(fits.Header.fromstring(text), relax=True)
+    assert any("obsfix" in str(w.message) for w in direct)  # the header does trigger the fix
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        rebuilt = wcs_from_stored_header(text)
+        via_posterior = CompletenessPosterior.__new__(CompletenessPosterior)
+        via_posterior.wcs_header = text
+        from_posterior = via_posterior.wcs
+    for w in (rebuilt, from_posterior):
+        assert np.allclose(w.pixel_to_world_values(1.0, 2.0), reference.pixel_to_world_values(1.0, 2.0), rtol=0,
+                           atol=1e-12)
