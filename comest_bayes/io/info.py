@@ -55,8 +55,16 @@ def format_info(info: dict) -> str:
         how = how if len(how) <= 80 else how[:77] + "..."
         lines.append(f"  seeing FWHM {inp['fwhm_pix']:.2f} px ({how})")
     cfg = info["config"]
+    used = cfg.get("density_used") or {}
+    if cfg.get("density"):
+        density = f"{cfg['density']:g} per arcmin^2"
+    elif used:
+        density = "density automatic (" + ", ".join(f"{k} {v:.3g}" for k, v in used.items() if v is not None) \
+            + " per arcmin^2)"
+    else:
+        density = "density automatic"
     lines.append(f"config: kinds {', '.join(cfg.get('kinds') or [])}; {cfg.get('nsims')} realizations per kind; "
-                 f"{cfg.get('density')} per arcmin^2; model {cfg.get('model')}; seed {cfg.get('seed')}")
+                 f"{density}; model {cfg.get('model')}; seed {cfg.get('seed')}")
     if info["stages"]:
         lines.append("stages done: " + ", ".join(f"{k} ({v:.1f} s)" if isinstance(v, (int, float)) else k
                                                   for k, v in info["stages"].items()))

@@ -420,7 +420,10 @@ def _facts(run: "Run") -> dict:
         },
         "config": {"kinds": injection.get("kinds"), "nsims": injection.get("nsims"),
                    "density": injection.get("density"), "model": (config.get("fit") or {}).get("model"),
-                   "seed": config.get("seed")},
+                   "seed": config.get("seed"),
+                   # the density each kind was injected at (the automatic choice when ``density`` is 0)
+                   "density_used": {k: d.get("density") for k, d in (state.get("injection_density") or {}).items()
+                                    if isinstance(d, dict)}},
         "stages": stages,
         "realizations": realizations,
         "kinds": kinds,

@@ -72,6 +72,7 @@ def test_info_prints_a_finished_runs_results_and_writes_nothing(finished_run, ca
     assert "stages done: detect (2.5 s), sourcefree (3.2 s), inject (12.0 s), ratios (1.0 s), " \
            "fit_completeness_point (4.0 s)" in out
     assert "realizations on disk: point 3/3, buldisk 3/3" in out
+    assert "3 realizations per kind; 15 per arcmin^2; model auto; seed 7" in out
     assert "point: 700/900 usable injections detected in 3 realizations, 3 false detections" in out
     # the sd where the summary has one (point), none where it does not (buldisk: a run before the sd existed)
     assert "m50 binned: 23.97 +- 0.007 (binomial noise of its two bins)" in out
@@ -84,6 +85,18 @@ def test_info_prints_a_finished_runs_results_and_writes_nothing(finished_run, ca
     assert "realization buldisk #2 failed" in out
     assert "sims/" in out and "(6 files)" in out and "summary.json" in out
     assert _tree(finished_run) == before
+
+
+def test_an_automatic_density_is_shown_as_the_density_each_kind_got(finished_run, capsys):
+    """density = 0 in the config means automatic: info names the density the run chose per kind, not "0.0"."""
+    state = json.loads((finished_run / "run.json").read_text())  # as a run with --density 0 leaves it
+    state["fingerprint"]["config"]["injection"]["density"] = 0.0
+    state["injection_density"] = {"point": {"density": 15.0, "source": "automatic"},
+                                  "buldisk": {"density": 7.25, "source": "automatic"}}
+    (finished_run / "run.json").write_text(json.dumps(state))
+    assert main(["info", str(finished_run)]) == 0
+    out = capsys.readouterr().out
+    assert "3 realizations per kind; density automatic (point 15, buldisk 7.25 per arcmin^2); model auto" in out
 
 
 def test_info_json_holds_the_same_facts(finished_run, capsys):
