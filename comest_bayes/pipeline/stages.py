@@ -58,6 +58,11 @@ _BASE_FILES = layout.BASE_IMAGES
 #: about 0.12" FWHM (Koekemoer et al. 2007) and must be deconvolved (GalSim RealGalaxy).
 COSMOS_MIN_FWHM_ARCSEC = 0.15
 
+#: The ratios stage warns when the brightest 0.5 mag of injections (at least BRIGHT_END_MIN_N of them)
+#: is less complete than this: the injected range starts inside the transition, not on its plateau.
+BRIGHT_END_MIN = 0.8
+BRIGHT_END_MIN_N = 50
+
 
 @dataclass(frozen=True)
 class ImageOptions:
@@ -589,6 +594,14 @@ def _injection_stages(run: RunDirectory, image: ImageData, det: DetectionResult,
         if 0 < c["usable"] < FEW_USABLE_INJECTIONS:  # the preflight expected more, or warned already
             log(f"warning: ratios: {kind}: only {c['usable']} usable injections: its completeness and m50 are "
                 f"loose (their intervals say how much); more realizations (--nsims) tighten them")
+        bright = R.bright_end(comp)
+        if bright["n"] >= BRIGHT_END_MIN_N and bright["ratio"] < BRIGHT_END_MIN:
+            kinds[kind]["bright_end"] = bright
+            log(f"warning: ratios: {kind}: the brightest injections ({bright['mag_lo']:.2f}-{bright['mag_hi']:.2f} "
+                f"mag) are only {bright['ratio']:.0%} complete ({bright['k']}/{bright['n']}): the injected range "
+                "starts inside the transition (crowding or blending can make the completeness fall far brighter "
+                "than the 5-sigma depth), so the bright plateau was never measured and the models' plateau and "
+                "bright side are their priors' extrapolation; inject brighter (--set injection.mag_range=[BRIGHT,FAINT])")
     timings["ratios"] = round(time.perf_counter() - t0, 3)
 
     # ---- the Bayesian completeness and purity models ---------------------------------

@@ -22,6 +22,7 @@ from comest_bayes.io.jsonio import jsonable
 
 __all__ = [
     "BinnedRatio",
+    "bright_end",
     "RatioMaps",
     "magnitude_edges",
     "binomial_interval",
@@ -514,6 +515,25 @@ def first_crossing(centers, values, level: float) -> float:
     if not good.any():
         return float("nan")
     return float(first_crossings(c[good], r[good][None, :], level)[0])
+
+
+def bright_end(ratio: BinnedRatio, width: float = 0.5) -> dict:
+    """The pooled ratio of the brightest ``width`` mag of populated bins.
+
+    Returns ``{"mag_lo", "mag_hi", "n", "k", "ratio"}``: the bins whose lower edge lies within
+    ``width`` of the first populated bin's lower edge, pooled (``ratio`` NaN when none is populated).
+    A completeness well below 1 there says the injections start inside the transition: the bright
+    plateau was never measured.
+    """
+    n = np.asarray(ratio.n)
+    filled = np.flatnonzero(n > 0)
+    if filled.size == 0:
+        return {"mag_lo": float("nan"), "mag_hi": float("nan"), "n": 0, "k": 0, "ratio": float("nan")}
+    lo = float(ratio.edges[filled[0]])
+    sel = (np.asarray(ratio.edges[:-1]) < lo + width - 1e-6) & (n > 0)
+    nn, kk = int(n[sel].sum()), int(np.asarray(ratio.k)[sel].sum())
+    return {"mag_lo": lo, "mag_hi": float(ratio.edges[np.flatnonzero(sel)[-1] + 1]), "n": nn, "k": kk,
+            "ratio": kk / nn}
 
 
 def magnitude_at(ratio: BinnedRatio, level: float = 0.5) -> float:

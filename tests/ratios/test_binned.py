@@ -301,3 +301,18 @@ def test_map_slices_sit_where_the_completeness_changes():
     comp2 = completeness(np.repeat(centers, n), np.concatenate([np.arange(k) < round((0.3 + 0.6 * p) * k)
                                                                  for p, k in zip(f, n)]), edges)
     np.testing.assert_allclose(transition_map_mag_edges(comp2), default_map_mag_edges(magnitude_at(comp2, 0.5)))
+
+
+def test_bright_end_pools_the_brightest_half_magnitude_of_populated_bins():
+    """Bins start at the first populated one (an empty brighter bin does not count) and cover 0.5 mag:
+    with 0.1-mag bins, five of them; the pooled ratio is k / n over those bins."""
+    from comest_bayes.ratios.binned import binned_ratio, bright_end, magnitude_edges
+
+    edges = magnitude_edges(19.0, 22.0, 0.1)
+    mags = np.concatenate([np.full(10, 20.05 + 0.1 * i) for i in range(10)])  # 10 per bin from 20.0 to 21.0
+    det = np.concatenate([np.arange(10) < (6 if i < 5 else 10) for i in range(10)])  # 60% in the first five
+    b = bright_end(binned_ratio(mags, det, edges))
+    assert b["n"] == 50 and b["k"] == 30 and b["ratio"] == pytest.approx(0.6)
+    assert b["mag_lo"] == pytest.approx(20.0) and b["mag_hi"] == pytest.approx(20.5)
+    empty = bright_end(binned_ratio(np.array([]), np.array([], bool), edges))
+    assert empty["n"] == 0 and np.isnan(empty["ratio"])
