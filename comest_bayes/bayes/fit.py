@@ -331,18 +331,18 @@ def fit_kind(outcomes: Table, *, kind: str, quantity: str, requested: str, confi
                           f"only bound the transition width from above, and its value (and the posterior's "
                           f"lower tail) is set by the prior on w. Inject more sources around m50 or treat w as "
                           f"an upper limit.", IdentifiabilityWarning, stacklevel=2)
+    candidates = resolve_candidates(spec) if spec.is_selection else [spec]
     if "depth" not in (meta.get("available") or ()):
         # no injection carries a noise value: the depth covariate is 0 for every injection, and with no
         # reference noise every footprint pixel sits at depth 0 as well (Footprint.from_histogram), so a
         # depth term multiplies 0 everywhere: it changes no output, and its prior-only slope is no caveat
         meta = {**meta, "inert": ("depth",)}
-        if any("depth" in covariates_needed(c) for c in (resolve_candidates(spec) if spec.is_selection else [spec])):
+        if any("depth" in covariates_needed(c) for c in candidates):
             log(f"fit: {kind} {quantity}: the injections carry no detection noise, so the models' depth terms are "
                 "inert (depth 0 everywhere); give a noise column, or positions and a noise map, to let m50 "
                 "follow the depth")
     data = compress_for(spec, cov, outcome, meta=meta)
     seed = int_seed_for(config.seed, Stream.FIT, quantity, kind)
-    candidates = resolve_candidates(spec) if spec.is_selection else [spec]
     if most_flexible:
         candidates = candidates[-1:]
 

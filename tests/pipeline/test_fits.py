@@ -51,7 +51,7 @@ def test_the_noise_map_is_read_at_each_position_as_a_run_records_it():
 def _depth_gradient_outcomes(n=6000, seed=2):
     """A logistic of width 0.2 whose m50 follows the depth of a noise map rising 2.5x across the image."""
     rng = np.random.default_rng(seed)
-    yy, xx = np.mgrid[0:60, 0:80]
+    xx = np.mgrid[0:60, 0:80][1]
     noise = (1.0 + 1.5 * xx / 80.0).astype(np.float32)
     mag = rng.uniform(21.0, 27.0, n)
     x, y = rng.uniform(0, 79, n), rng.uniform(0, 59, n)
