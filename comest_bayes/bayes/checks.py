@@ -164,8 +164,11 @@ def shape_warning(check: ShapeCheck, *, name: str, kind: str, quantity: str) -> 
     p = check.p_value
     if p is None or p >= P_WARN:
         return None
-    return (f"the {name} {quantity} curve of {kind} does not describe the binned outcomes (chi2 = {check.chi2:.1f} "
+    what = f"the {quantity} curve" if name == quantity else f"the {name} {quantity} curve"
+    # completeness has more flexible rungs to offer; purity has one model
+    remedy = ("trust the binned ratios, or fit a more flexible model (--model)" if quantity == "completeness"
+              else f"trust the binned {quantity} ratios")
+    return (f"{what} of {kind} does not describe the binned outcomes (chi2 = {check.chi2:.1f} "
             f"for {check.dof} magnitude bins, p = {p:.1e}; worst bin at {check.mag_at_max:.2f} mag, "
             f"{check.max_abs_z:.1f} sigma): with this many injections the model's form, not its statistics, "
-            f"limits it and its intervals are too narrow; trust the binned ratios, or fit a more flexible model "
-            f"(--model)")
+            f"limits it and its intervals are too narrow; {remedy}")

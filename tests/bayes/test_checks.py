@@ -56,7 +56,11 @@ def test_a_two_population_truth_fails_the_check_and_says_so():
     assert check.max_abs_z > 4
     assert 23.0 < check.mag_at_max < 24.4
     msg = shape_warning(check, name="logistic", kind="point", quantity="completeness")
-    assert msg is not None and "binned ratios" in msg and "logistic" in msg
+    assert msg is not None and "binned ratios" in msg and "logistic" in msg and "--model" in msg
+    # the purity model is named like its quantity and has no more flexible rung to point to
+    msg = shape_warning(check, name="purity", kind="point", quantity="purity")
+    assert msg.startswith("the purity curve of point does not describe")
+    assert "binned purity ratios" in msg and "--model" not in msg
 
 
 def test_certain_bins_are_left_out_and_all_detected_gives_no_verdict():
