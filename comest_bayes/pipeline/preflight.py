@@ -23,7 +23,7 @@ from comest_bayes.inject.psfmodel import make_psf
 from comest_bayes.seeding import rng_for
 
 __all__ = ["MIN_USABLE_INJECTIONS", "FEW_USABLE_INJECTIONS", "SMALLEST_SEEING_PIX", "PUBLISHED_DENSITY",
-           "TARGET_PER_REALIZATION", "PER_BACKGROUND_MESH", "HOLD_FRACTION", "DensityChoice", "choose_density",
+           "TARGET_PER_REALIZATION", "PER_BACKGROUND_MESH", "MAX_PER_BACKGROUND_MESH", "HOLD_FRACTION", "DensityChoice", "choose_density",
            "choose_densities", "InjectionBudget", "stamp_half_size", "injection_budget", "check_injection_count",
            "budget_warnings", "injection_memory", "available_memory", "check_memory"]
 
@@ -55,6 +55,15 @@ TARGET_PER_REALIZATION = 100.0
 #: density gives 0.7-1.2 per mesh at ground-based pixel scales; the automatic density never goes below
 #: it.)
 PER_BACKGROUND_MESH = 0.25
+#: Most injections per background mesh the automatic density ever asks for.  It is the published
+#: density's own load at ground-based pixel scales (1.15 per 64-pixel mesh on the 0.26"/px demo tile,
+#: 1.17 on DECam's 0.262"/px), so it changes nothing there; it binds on coarse pixels, where 15 per
+#: arcmin^2 would put tens of injections in each mesh.  On the shared 2MASS field (5"/px, 721x720),
+#: what the placement holds, 5021 point sources per realization (38 usable per mesh, as many as the
+#: sources the image has), lowered the measured completeness by 0.06-0.12 at 8.6-11.1 mag against 160
+#: per realization (1.2 per mesh) and moved the binned m50 from 10.16 to 9.57 mag; 505 (3.8 per mesh)
+#: sat 0.03 below 160 at 8.6-10.1 mag (benchmarks/bench_crowded_density.py, docs/usage.md).
+MAX_PER_BACKGROUND_MESH = 1.25
 #: Fraction of the random-packing count at the minimum separation (``JAMMING_COVERAGE``) the automatic
 #: density fills at most: dart throwing still places every injection there without stalling.
 HOLD_FRACTION = 0.5
@@ -128,8 +137,11 @@ class DensityChoice:
     rule : str
         ``user`` (the density given), ``published`` (the published density is enough),
         ``raised`` (the published density gives fewer than the target: raised up to the target, the
-        background cap and what the placement holds) or ``placement cap`` (the published density is
-        more than the placement holds: lowered to it).
+        background cap and what the placement holds), ``placement cap`` (the published density is
+        more than the placement holds: lowered to it) or ``background cap`` (the published density
+        would put more than ``MAX_PER_BACKGROUND_MESH`` in each background mesh: lowered to that).
+    warning : str or None
+        A user's density above ``MAX_PER_BACKGROUND_MESH`` per background mesh: what it risks.
     reason : str
         One sentence for the log and the report.
     area_arcmin2, published, target, mesh_cap, hold_cap : float
@@ -156,6 +168,7 @@ class DensityChoice:
     hold_cap: float
     min_sep_pix: float
     sizing: dict | None = None
+    warning: str | None = None
 
     def to_dict(self) -> dict:
         d = dict(self.__dict__)
@@ -182,7 +195,9 @@ def choose_density(kind: str, *, shape, pixel_scale: float, fwhm_pix: float | No
     * the count is ``hold_cap`` when ``published`` exceeds it (coarse pixels, wide separations);
       else ``published`` when it reaches ``TARGET_PER_REALIZATION`` (large images: the published
       density unchanged); else ``max(published, min(TARGET_PER_REALIZATION, mesh_cap, hold_cap))``
-      (small fields of fine pixels, e.g. 1.6 per realization on a 640x640 JWST image at 0.031"/px).
+      (small fields of fine pixels, e.g. 1.6 per realization on a 640x640 JWST image at 0.031"/px);
+    * and never more than ``MAX_PER_BACKGROUND_MESH x npix / back_size^2`` (coarse pixels: on the
+      2MASS field at 5"/px, 160 per realization instead of the 5021 the placement holds).
 
     ``fwhm_pix`` None (the seeing not yet known) takes a point source's separation as 0.
     """
@@ -206,10 +221,20 @@ def choose_density(kind: str, *, shape, pixel_scale: float, fwhm_pix: float | No
         held = f"{hold:.1f} held by the placement at the {r:.1f} px minimum separation" if r > 0 else ""
     facts = dict(kind=kind, area_arcmin2=area, published=published, target=TARGET_PER_REALIZATION,
                  mesh_cap=mesh, hold_cap=hold, min_sep_pix=r, sizing=sizing)
+    meshes = npix / float(back_size) ** 2
+    ceiling = MAX_PER_BACKGROUND_MESH * meshes
     if injection.density > 0:
         n = injection.density * area
+        warning = None
+        if n > ceiling:
+            warning = (f"{injection.density:g} per arcmin^2 puts {n / meshes:.1f} injections in each "
+                       f"{back_size}x{back_size} background mesh (more than {MAX_PER_BACKGROUND_MESH:g}): the injections "
+                       f"lift the background and crowd the image, which lowers the completeness they measure; "
+                       f"{MAX_PER_BACKGROUND_MESH * meshes / area:.3g} per arcmin^2 ({ceiling:.0f} per realization) or "
+                       f"less, with more realizations (--nsims), avoids it")
         return DensityChoice(density=float(injection.density), per_realization=n, source="user", rule="user",
-                             reason=f"{injection.density:g} per arcmin^2 as given ({n:.1f} per realization)", **facts)
+                             reason=f"{injection.density:g} per arcmin^2 as given ({n:.1f} per realization)",
+                             warning=warning, **facts)
     if published > hold:
         n, rule = hold, "placement cap"
         why = (f"the published {PUBLISHED_DENSITY:g} per arcmin^2 would ask for {published:.0f} per realization, "
@@ -230,6 +255,11 @@ def choose_density(kind: str, *, shape, pixel_scale: float, fwhm_pix: float | No
             rule = "raised"
             why = (f"the published {PUBLISHED_DENSITY:g} per arcmin^2 gives only {published:.1f} per realization on "
                    f"this {nx}x{ny} image; raised to {n:.1f}, the smallest of {', '.join(limits)}")
+    if n > ceiling:
+        why = (f"{why}; lowered further to {ceiling:.0f}, {MAX_PER_BACKGROUND_MESH:g} per {back_size}x{back_size} "
+               f"background mesh (more lift the background and crowd the image, lowering the completeness they "
+               f"measure)")
+        n, rule = ceiling, "background cap"
     density = PUBLISHED_DENSITY if n == published else n / area  # (15, not 15.000000000000002)
     return DensityChoice(density=density, per_realization=n, source="automatic", rule=rule,
                          reason=f"{density:.4g} per arcmin^2, automatic: {why}", **facts)

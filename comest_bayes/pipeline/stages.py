@@ -388,6 +388,8 @@ def _run_pipeline(options: ImageOptions, config: RunConfig, out_dir, *, log, com
     run.update(injection_density={kind: choice.to_dict() for kind, choice in densities.items()})
     for kind, choice in densities.items():
         log(f"density: {kind}: {choice.reason}")
+        if choice.warning:
+            log(f"warning: density: {kind}: {choice.warning}")
     for line in budget_warnings(budgets, config.adaptive.max_nsims if config.adaptive.enabled
                                 else config.injection.nsims):
         log(f"warning: density: {line}")
@@ -601,7 +603,9 @@ def _injection_stages(run: RunDirectory, image: ImageData, det: DetectionResult,
                 f"mag) are only {bright['ratio']:.0%} complete ({bright['k']}/{bright['n']}): the injected range "
                 "starts inside the transition (crowding or blending can make the completeness fall far brighter "
                 "than the 5-sigma depth), so the bright plateau was never measured and the models' plateau and "
-                "bright side are their priors' extrapolation; inject brighter (--set injection.mag_range=[BRIGHT,FAINT])")
+                "bright side are their priors' extrapolation; inject brighter (--set injection.mag_range=[BRIGHT,FAINT]), "
+                "and keep injections far brighter than the 5-sigma depth apart with a larger injection.min_sep (their "
+                "light reaches their neighbours: docs/bayesian.md, Stability)")
     timings["ratios"] = round(time.perf_counter() - t0, 3)
 
     # ---- the Bayesian completeness and purity models ---------------------------------

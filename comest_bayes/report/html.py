@@ -280,7 +280,8 @@ def _facts_section(r: _Report) -> None:
         rows.append([f"injections ({kind})",
                      f"{choice.get('density', float('nan')):.3g} per arcmin^2, "
                      f"{choice.get('per_realization', float('nan')):.0f} per realization",
-                     choice.get("reason") or choice.get("source", "")])
+                     (choice.get("reason") or choice.get("source", ""))
+                     + (f"; warning: {choice['warning']}" if choice.get("warning") else "")])
         sizing = choice.get("sizing") or {}
         if sizing:
             rows.append([f"separation and stamps ({kind})", sizing.get("separation", ""), sizing.get("stamp", "")])

@@ -54,6 +54,26 @@ def test_a_density_given_by_the_user_is_kept(fine_small_image, tmp_path, capsys)
     area = 640 * 640 * (0.05 / 60) ** 2
     assert choice["source"] == "user" and choice["density"] == 2000.0
     assert "2000 per arcmin^2 as given" in log
+    # 569 per realization on 100 background meshes: kept, with a warning that says what it risks
+    assert choice["warning"].startswith("2000 per arcmin^2 puts 5.7 injections in each 64x64 background mesh")
+    assert f"warning: density: point: {choice['warning']}" in log
     injected = Table.read(out / "catalogs" / "point_injected.fits")
     mean = 3 * 2000.0 * area  # 1707
     assert abs(len(injected) - mean) <= 3.5 * np.sqrt(mean)
+
+
+def test_coarse_pixels_get_at_most_one_and_a_quarter_injections_per_background_mesh(fine_small_image, tmp_path,
+                                                                                   capsys):
+    # The same 640x640 pixels read as 2"/px: 455 arcmin^2, 6827 per realization at 15 per arcmin^2,
+    # 990 held by the placement (12 px apart); 100 meshes hold 125 at the ceiling of 1.25 per mesh.
+    out = tmp_path / "coarse"
+    assert main(["run", str(fine_small_image), "--pixel-scale", "2", "--zp", "25", "--fwhm", "3", "--kinds", "point",
+                 "--nsims", "2", "--model", "none", "--ncpu", "1", "--seed", "1", "--no-report",
+                 "--out", str(out)]) == 0
+    log = capsys.readouterr().out
+    choice = json.loads((out / "run.json").read_text())["injection_density"]["point"]
+    assert choice["source"] == "automatic" and choice["rule"] == "background cap"
+    assert choice["per_realization"] == pytest.approx(125.0) and choice["warning"] is None
+    assert "lowered further to 125, 1.25 per 64x64 background mesh" in log and "warning: density" not in log
+    injected = Table.read(out / "catalogs" / "point_injected.fits")
+    assert abs(len(injected) - 250) <= 3.5 * np.sqrt(250)  # Poisson(125) twice; the placement would give ~2000

@@ -296,7 +296,8 @@ def test_crowded_2mass_field_runs_on_the_observed_image_and_reports_the_confusio
     assert summary["sourcefree"]["injected_on"] == "observed"
     # the baseline on the observed image is the first detection (same pixels and noise), not a repeat
     assert state["stages"]["baseline"]["reused_detection"] is True
-    assert state["injection_density"]["point"]["source"] == "user"  # --density 1 kept
+    assert state["injection_density"]["point"]["source"] == "user"  # --density 1 kept, with a warning:
+    assert state["injection_density"]["point"]["warning"].startswith("1 per arcmin^2 puts 28.4 injections in each")
     mag = np.asarray(outcomes["mag"], dtype=float)
     detected = np.asarray(outcomes["detected"], dtype=bool)
     predicted = _predicted_m50(summary)

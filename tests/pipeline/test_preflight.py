@@ -65,14 +65,32 @@ def test_auto_density_keeps_the_published_density_where_it_is_enough():
     assert d.per_realization == pytest.approx(15 * (200 * 0.262 / 60) ** 2) and d.mesh_cap < d.per_realization
 
 
-def test_auto_density_is_lowered_to_what_the_placement_holds_on_coarse_pixels():
+def test_auto_density_is_lowered_to_a_background_ceiling_on_coarse_pixels():
     # the 2MASS field: 720x721 at 5"/px is 3605 arcmin^2, 54075 per realization at 15 per arcmin^2;
-    # point sources of FWHM 1.5 px, 6 px apart: half of random packing is 5021
+    # point sources of FWHM 1.5 px, 6 px apart: half of random packing is 5021, 40 per 64x64 mesh,
+    # about as many as the sources the field has.  The ceiling of 1.25 per mesh (126.7 meshes) binds.
     c = _choice("point", (721, 720), 5.0, 1.5)
-    assert c.rule == "placement cap"
-    assert c.per_realization == pytest.approx(_half_jamming(721 * 720, 6.0))
-    assert 5000 < c.per_realization < 5050
+    assert c.hold_cap == pytest.approx(_half_jamming(721 * 720, 6.0)) and 5000 < c.hold_cap < 5050
+    assert c.rule == "background cap" and c.warning is None
+    assert c.per_realization == pytest.approx(1.25 * 721 * 720 / 64 ** 2)  # 158.4
     assert c.density == pytest.approx(c.per_realization / (721 * 720 * (5.0 / 60) ** 2))
+    assert "lowered to the 5021" in c.reason and "lowered further to 158, 1.25 per 64x64 background mesh" in c.reason
+    # larger meshes hold more (the ceiling counts meshes of detection.back_size)
+    assert _choice("point", (721, 720), 5.0, 1.5, back_size=128).per_realization == pytest.approx(c.per_realization / 4)
+    # the ceiling is the published density's load at ground-based pixel scales: it leaves those alone
+    assert _choice("point", (3000, 3000), 0.26, 3.5).rule == "published"  # 1.15 per mesh
+    assert _choice("point", (2600, 2600), 0.2, 4.0).rule == "published"  # KiDS, 0.68 per mesh
+    # at the SDSS pixel (0.396"/px) the published density is 2.6 per mesh: lowered to the ceiling
+    sdss = _choice("point", (2048, 1489), 0.396, 3.5)
+    assert sdss.rule == "background cap" and sdss.per_realization == pytest.approx(1.25 * 2048 * 1489 / 4096)
+
+
+def test_a_user_density_above_the_background_ceiling_is_kept_with_a_warning():
+    c = _choice("point", (721, 720), 5.0, 1.5, density=1.0)
+    assert c.source == "user" and c.density == 1.0 and c.per_realization == pytest.approx(721 * 720 * (5 / 60) ** 2)
+    assert c.warning.startswith("1 per arcmin^2 puts 28.4 injections in each 64x64 background mesh (more than 1.25)")
+    assert "0.0439 per arcmin^2 (158 per realization) or less" in c.warning and "--nsims" in c.warning
+    assert _choice("point", (640, 640), 0.0308, 2.46, density=100.0).warning is None  # 0.11 per mesh
 
 
 def test_a_density_the_user_sets_is_kept():
