@@ -31,7 +31,7 @@ from comest_bayes.io.rundir import RunDirectory, file_checksum, atomic_path
 from comest_bayes.seeding import Stream, seed_sequence, int_seed_for
 from comest_bayes.io.jsonio import dumps
 from comest_bayes.io import layout
-from comest_bayes.pipeline.preflight import SMALLEST_SEEING_PIX, budget_warnings, check_injection_count, check_memory, choose_densities, FEW_USABLE_INJECTIONS
+from comest_bayes.pipeline.preflight import SMALLEST_SEEING_PIX, BRIGHT_NEIGHBOUR_WARN, BRIGHT_REACH, bright_neighbours, budget_warnings, check_injection_count, check_memory, choose_densities, FEW_USABLE_INJECTIONS
 from comest_bayes.detect.psf import injection_psf, measure_seeing, BAD_FLAGS, point_size_check, select_stars
 from comest_bayes.sourcefree import build_source_free, format_percent, judge_replacement
 from comest_bayes.pipeline.executors import TaskRunner, run_tasks
@@ -39,7 +39,7 @@ from comest_bayes.detect.sextractor import find_sextractor
 from comest_bayes.inject.cosmos import load_cosmos
 from comest_bayes.bayes.spec import load_spec
 from comest_bayes.inject.psfmodel import make_psf
-from comest_bayes.ratios.depth import noise_equivalent_area, point_source_depth_nea
+from comest_bayes.ratios.depth import isophote_radius_pix, noise_equivalent_area, point_source_depth_nea
 from comest_bayes.ratios import binned as R
 from comest_bayes.pipeline.progress import realization_with_warnings, FitProgress, describe_fit
 from comest_bayes.recover.realization import RealizationTask, SimContext, merge_realizations, realization_file, write_realization
@@ -463,6 +463,39 @@ def _auto_mag_range(image: ImageData, det: DetectionResult, nea: float) -> tuple
     return (round(m5 - 5.0, 2), round(m5 + 1.5, 2))
 
 
+def _bright_neighbour_check(config: RunConfig, image: ImageData, det: DetectionResult, psf_choice: dict | None,
+                            mag_range, choice: dict | None) -> tuple[dict | None, str | None]:
+    """:func:`bright_neighbours` of the point injections of a run, and the warning when their share is large.
+
+    The isophotes are those of the injection PSF filtered with the detection kernel, on the median
+    detection noise at the detection threshold.  Returns ``(record, warning or None)``; ``(None, None)``
+    without point injections or a density choice.
+    """
+    if "point" not in config.injection.kinds or not choice:
+        return None, None
+    sigma = float(np.median(det.noise[~image.mask]))
+    size = int(min(401, max(65, 2 * math.ceil(15.0 * float(image.fwhm)) + 1)))
+    psf = _injection_psf_profile(config, image, psf_choice).drawImage(nx=size, ny=size, scale=image.pixel_scale,
+                                                                      method="no_pixel").array
+    kernel = filter_kernel(config.detection.filter)
+
+    def radius_at(mags):
+        return isophote_radius_pix(psf, 10.0 ** (-0.4 * (np.asarray(mags) - image.zeropoint)), sigma,
+                                   config.detection.thresh, kernel)
+
+    rec = bright_neighbours(mag_range, float(choice["per_realization"]), float((~image.mask).sum()),
+                            float(choice["min_sep_pix"]), radius_at)
+    if rec["fraction"] <= BRIGHT_NEIGHBOUR_WARN:
+        return rec, None
+    sep_arcsec = BRIGHT_REACH * rec["radius_bright"] * image.pixel_scale  # the brightest one's reach
+    return rec, (f"point injections brighter than {rec['mag_reach']:.1f} mag spread above the detection threshold "
+                 f"over more than half their {rec['min_sep_pix']:.1f} px separation (the brightest, "
+                 f"{mag_range[0]:.2f} mag, over {rec['radius_bright']:.1f} px), and a fainter injection that close is "
+                 f"usually lost in them: about {100 * rec['fraction']:.0f}% of the injections are expected that "
+                 f"close to a brighter one, which lowers the completeness measured; keep them apart with "
+                 f"--set injection.min_sep={sep_arcsec:.3g} (arcsec), or inject fainter (injection.mag_range)")
+
+
 def _injection_stages(run: RunDirectory, image: ImageData, det: DetectionResult, config: RunConfig,
                       compute: "ComputeOptions", log, timings: dict) -> dict:
 
@@ -492,11 +525,16 @@ def _injection_stages(run: RunDirectory, image: ImageData, det: DetectionResult,
         files = [run.write_table(layout.BASELINE, set_image_units(bdet.catalog, image.bunit)),
                  run.write_image(layout.MASK, image.mask.astype(np.uint8), header)]
         mag_range = tuple(inj.mag_range) if inj.mag_range else _auto_mag_range(image, det, _psf_nea(config, image, psf_choice))
+        reach, reach_warning = _bright_neighbour_check(config, image, det, psf_choice, mag_range,
+                                                       (run.state.get("injection_density") or {}).get("point"))
         run.record_stage("baseline", files=files, seconds=time.perf_counter() - t0, nsources=len(bdet.catalog),
-                         mag_range=list(mag_range), base=base_name, reused_detection=reused)
+                         mag_range=list(mag_range), base=base_name, reused_detection=reused,
+                         bright_neighbours=reach)
         log(f"baseline: {len(bdet.catalog)} sources detected on the bare {base_name} "
             + ("(the first detection's, on the same pixels and noise) " if reused else "")
             + f"(counted as pre-existing, not false); injections span {mag_range[0]:.2f}-{mag_range[1]:.2f} mag")
+        if reach_warning:
+            log(f"warning: injection: {reach_warning}")
     mag_range = tuple(run.stage_info("baseline")["mag_range"])
     timings["baseline"] = run.stage_info("baseline").get("seconds")
 

@@ -22,7 +22,7 @@ from comest_bayes.errors import InputError
 from comest_bayes.ratios.binned import first_crossing
 from comest_bayes.sim.analytic import kernel_norm, predict, psf_image
 
-__all__ = ["DepthOffset", "m50_depth_offset", "noise_equivalent_area", "point_source_depth_nea", "limiting_magnitude", "point_source_depth", "HistogramCompleteness", "histogram_completeness"]
+__all__ = ["DepthOffset", "m50_depth_offset", "noise_equivalent_area", "point_source_depth_nea", "isophote_radius_pix", "limiting_magnitude", "point_source_depth", "HistogramCompleteness", "histogram_completeness"]
 
 _LN10 = math.log(10.0)
 
@@ -142,6 +142,34 @@ def point_source_depth_nea(sigma, zeropoint: float, nea: float, nsigma: float = 
     ``sigma`` a scalar per-pixel noise.
     """
     return float(zeropoint - 2.5 * np.log10(nsigma * float(sigma) * np.sqrt(_positive("nea", nea))))
+
+
+def isophote_radius_pix(psf_image, flux, sigma: float, thresh: float, kernel=None) -> np.ndarray:
+    """Radius (pixels) of the detection isophote of a point source: ``sqrt(npix / pi)``.
+
+    ``npix`` counts the pixels where the source's image, filtered with the
+    detection ``kernel`` (SEP's ``filter_type="conv"``; None for no filter),
+    reaches ``thresh x sigma`` on flat noise ``sigma``: the area SEP gives the
+    object on its own.  ``psf_image`` is the pixelised PSF, normalised here to
+    unit sum; it must be large enough to hold the isophote (a radius at its
+    edge is a lower bound).  ``flux`` may be an array.
+    """
+    p = np.asarray(psf_image, dtype=float)
+    total = p.sum()
+    if p.ndim != 2 or not np.isfinite(total) or total <= 0:
+        raise ValueError("the PSF image must be 2-D with a positive, finite sum")
+    p = p / total
+    if kernel is not None:
+        from scipy.signal import fftconvolve
+
+        k = np.asarray(kernel, dtype=float)
+        p = fftconvolve(p, k / k.sum(), mode="same")
+    level = np.sort(p.ravel())[::-1]  # the profile's values, brightest first
+    f = np.atleast_1d(np.asarray(flux, dtype=float))
+    # pixels above thresh * sigma / flux, by a search in the descending profile
+    npix = np.searchsorted(-level, -(_positive("thresh", thresh) * _positive("sigma", sigma) / f), side="right")
+    out = np.sqrt(npix / np.pi)
+    return out if np.ndim(flux) else float(out[0])
 
 
 class DepthOffset(NamedTuple):

@@ -77,3 +77,27 @@ def test_coarse_pixels_get_at_most_one_and_a_quarter_injections_per_background_m
     assert "lowered further to 125, 1.25 per 64x64 background mesh" in log and "warning: density" not in log
     injected = Table.read(out / "catalogs" / "point_injected.fits")
     assert abs(len(injected) - 250) <= 3.5 * np.sqrt(250)  # Poisson(125) twice; the placement would give ~2000
+
+
+def test_a_range_far_brighter_than_the_default_warns_that_bright_injections_take_their_neighbours(
+        fine_small_image, tmp_path, capsys):
+    # the default range (m5 - 5 to m5 + 1.5): the brightest injection's isophote (2 FWHM = 6 px) stays
+    # within half the 12 px separation, so almost no injection falls within a brighter one's reach
+    out = tmp_path / "default"
+    assert _run(fine_small_image, out) == 0
+    assert "warning: injection:" not in capsys.readouterr().out
+    stage = json.loads((out / "run.json").read_text())["stages"]["baseline"]
+    quiet = stage["bright_neighbours"]
+    assert quiet["fraction"] < 1e-3 and quiet["radius_bright"] < 0.5 * quiet["min_sep_pix"] + 0.5
+    lo, hi = stage["mag_range"]
+    # five magnitudes brighter: the brightest spreads over 2.4 x as many pixels' radius, and the run says
+    # how many injections it puts at risk and the separation that keeps them apart
+    out = tmp_path / "bright"
+    assert _run(fine_small_image, out, "--set", f"injection.mag_range=[{lo - 5:.2f},{hi:.2f}]") == 0
+    log = capsys.readouterr().out
+    rec = json.loads((out / "run.json").read_text())["stages"]["baseline"]["bright_neighbours"]
+    assert rec["fraction"] > 0.01 and rec["radius_bright"] > 2 * quiet["radius_bright"]
+    warned = [line for line in log.splitlines() if line.startswith("warning: injection: point injections brighter")]
+    assert len(warned) == 1
+    assert f"about {100 * rec['fraction']:.0f}% of the injections" in warned[0]
+    assert f"--set injection.min_sep={2 * rec['radius_bright'] * 0.05:.3g} (arcsec)" in warned[0]

@@ -168,3 +168,44 @@ def test_the_shared_jwst_image_gets_usable_galaxies_in_every_realization():
             asked += t.meta["n_requested"]
     # 20 Poisson draws of mean 3: 60 +- 8 asked; at least 90% of them placed
     assert usable / 20 >= 2.5 and usable >= 0.9 * asked
+
+
+# --------------------------------------------------------------------------- bright injections and their neighbours
+
+def test_isophote_radius_of_a_gaussian_matches_its_analytic_value():
+    # An unfiltered circular Gaussian of sigma s and flux F exceeds t * sigma_noise inside
+    # r^2 = 2 s^2 ln(F / (2 pi s^2 t sigma_noise)); the pixel count of a 4-px Gaussian on a fine grid is
+    # pi r^2 to within the pixelisation (a fraction of a pixel in radius).
+    from comest_bayes.ratios.depth import isophote_radius_pix
+
+    s = 4.0
+    y, x = np.mgrid[-100:101, -100:101]
+    psf = np.exp(-0.5 * (x ** 2 + y ** 2) / s ** 2)
+    flux = np.array([1e3, 1e4, 1e5])
+    expected = np.sqrt(2 * s ** 2 * np.log(flux / (2 * np.pi * s ** 2 * 1.5 * 1.0)))
+    got = isophote_radius_pix(psf, flux, 1.0, 1.5)
+    np.testing.assert_allclose(got, expected, atol=0.3)
+    # a source whose peak stays under the threshold has no isophote; a scalar flux gives a float
+    assert isophote_radius_pix(psf, 10.0, 1.0, 1.5) == 0.0
+    # a filter spreads the light: the isophote of a bright source grows
+    assert isophote_radius_pix(psf, 1e5, 1.0, 1.5, kernel=np.ones((5, 5))) > got[-1]
+
+
+def test_bright_neighbours_counts_the_injections_within_a_brighter_ones_reach():
+    from comest_bayes.pipeline.preflight import BRIGHT_REACH, bright_neighbours
+
+    # every injection reaches 2 x 8 = 16 px, kept 12 px apart: each has density x pi (16^2 - 12^2)
+    # neighbours expected in that ring
+    rec = bright_neighbours((20.0, 22.0), 100.0, 1e6, 12.0, lambda m: np.full(np.shape(m), 8.0))
+    assert BRIGHT_REACH == 2.0
+    assert rec["fraction"] == pytest.approx(100.0 / 1e6 * np.pi * (16.0 ** 2 - 12.0 ** 2))
+    assert rec["mag_reach"] == pytest.approx(22.0) and rec["radius_bright"] == 8.0
+    # reach grows 2 px per magnitude brighter: only the bright half of the range passes the separation
+    rec = bright_neighbours((20.0, 24.0), 100.0, 1e6, 12.0, lambda m: 6.0 + (22.0 - np.asarray(m)), nmag=4001)
+    m = np.linspace(20.0, 24.0, 4001)
+    excess = np.pi * np.clip((2 * (6.0 + 22.0 - m)) ** 2 - 144.0, 0, None)
+    assert rec["fraction"] == pytest.approx(1e-4 * excess.mean())
+    assert rec["mag_reach"] == pytest.approx(22.0, abs=2e-3)  # the last grid point whose reach passes 12 px
+    # nothing reaches past the separation: no neighbour at risk
+    quiet = bright_neighbours((20.0, 24.0), 100.0, 1e6, 12.0, lambda m: np.full(np.shape(m), 5.0))
+    assert quiet["fraction"] == 0.0 and quiet["mag_reach"] is None
