@@ -389,6 +389,14 @@ def _facts(run: "Run") -> dict:
                 warnings_.append(f"{kind} {label}: the {m.get('sampler')} sampler did not converge")
         if not counts.get("usable"):
             warnings_.append(f"{kind}: no usable injection")
+        if (entry.get("bright_end") or {}).get("warning"):
+            warnings_.append(f"{kind} ratios: {entry['bright_end']['warning']}")
+    for kind, choice in (state.get("injection_density") or {}).items():
+        if isinstance(choice, dict) and choice.get("warning"):
+            warnings_.append(f"density ({kind}): {choice['warning']}")
+    reach = (recorded.get("baseline") or {}).get("bright_neighbours") or {}
+    if reach.get("warning"):
+        warnings_.append(f"injection: {reach['warning']}")
     replacement = (recorded.get("sourcefree") or {}).get("replacement") or {}
     for w in replacement.get("warnings") or []:
         warnings_.append(f"source-free image: {w}")

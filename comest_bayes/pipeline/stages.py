@@ -529,7 +529,7 @@ def _injection_stages(run: RunDirectory, image: ImageData, det: DetectionResult,
                                                        (run.state.get("injection_density") or {}).get("point"))
         run.record_stage("baseline", files=files, seconds=time.perf_counter() - t0, nsources=len(bdet.catalog),
                          mag_range=list(mag_range), base=base_name, reused_detection=reused,
-                         bright_neighbours=reach)
+                         bright_neighbours=None if reach is None else {**reach, "warning": reach_warning})
         log(f"baseline: {len(bdet.catalog)} sources detected on the bare {base_name} "
             + ("(the first detection's, on the same pixels and noise) " if reused else "")
             + f"(counted as pre-existing, not false); injections span {mag_range[0]:.2f}-{mag_range[1]:.2f} mag")
@@ -636,14 +636,15 @@ def _injection_stages(run: RunDirectory, image: ImageData, det: DetectionResult,
                 f"loose (their intervals say how much); more realizations (--nsims) tighten them")
         bright = R.bright_end(comp)
         if bright["n"] >= BRIGHT_END_MIN_N and bright["ratio"] < BRIGHT_END_MIN:
-            kinds[kind]["bright_end"] = bright
-            log(f"warning: ratios: {kind}: the brightest injections ({bright['mag_lo']:.2f}-{bright['mag_hi']:.2f} "
-                f"mag) are only {bright['ratio']:.0%} complete ({bright['k']}/{bright['n']}): the injected range "
-                "starts inside the transition (crowding or blending can make the completeness fall far brighter "
-                "than the 5-sigma depth), so the bright plateau was never measured and the models' plateau and "
-                "bright side are their priors' extrapolation; inject brighter (--set injection.mag_range=[BRIGHT,FAINT]), "
-                "and keep injections far brighter than the 5-sigma depth apart with a larger injection.min_sep (their "
-                "light reaches their neighbours: docs/bayesian.md, Stability)")
+            text = (f"the brightest injections ({bright['mag_lo']:.2f}-{bright['mag_hi']:.2f} mag) are only "
+                    f"{bright['ratio']:.0%} complete ({bright['k']}/{bright['n']}): the injected range starts inside "
+                    "the transition (crowding or blending can make the completeness fall far brighter than the "
+                    "5-sigma depth), so the bright plateau was never measured and the models' plateau and bright side "
+                    "are their priors' extrapolation; inject brighter (--set injection.mag_range=[BRIGHT,FAINT]), and "
+                    "keep injections far brighter than the 5-sigma depth apart with a larger injection.min_sep (their "
+                    "light reaches their neighbours: docs/bayesian.md, Stability)")
+            kinds[kind]["bright_end"] = {**bright, "warning": text}
+            log(f"warning: ratios: {kind}: {text}")
     timings["ratios"] = round(time.perf_counter() - t0, 3)
 
     # ---- the Bayesian completeness and purity models ---------------------------------

@@ -57,6 +57,8 @@ def test_a_density_given_by_the_user_is_kept(fine_small_image, tmp_path, capsys)
     # 569 per realization on 100 background meshes: kept, with a warning that says what it risks
     assert choice["warning"].startswith("2000 per arcmin^2 puts 5.7 injections in each 64x64 background mesh")
     assert f"warning: density: point: {choice['warning']}" in log
+    assert main(["info", str(out)]) == 0
+    assert f"  - density (point): {choice['warning']}" in capsys.readouterr().out.splitlines()
     injected = Table.read(out / "catalogs" / "point_injected.fits")
     mean = 3 * 2000.0 * area  # 1707
     assert abs(len(injected) - mean) <= 3.5 * np.sqrt(mean)
@@ -101,3 +103,6 @@ def test_a_range_far_brighter_than_the_default_warns_that_bright_injections_take
     assert len(warned) == 1
     assert f"about {100 * rec['fraction']:.0f}% of the injections" in warned[0]
     assert f"--set injection.min_sep={2 * rec['radius_bright'] * 0.05:.3g} (arcsec)" in warned[0]
+    # `comest-bayes info` lists it with the run's other warnings
+    assert main(["info", str(out)]) == 0
+    assert f"  - injection: {warned[0].removeprefix('warning: injection: ')}" in capsys.readouterr().out.splitlines()

@@ -275,7 +275,7 @@ def test_real_image_runs_and_its_point_source_m50_is_where_the_noise_predicts(ca
 
 
 @pytest.mark.slow  # 35-60 s: every frame of this field holds ~5000 sources, ~10 s per detection, 3 detections
-def test_crowded_2mass_field_runs_on_the_observed_image_and_reports_the_confusion(shared_data, tmp_path):
+def test_crowded_2mass_field_runs_on_the_observed_image_and_reports_the_confusion(shared_data, tmp_path, capsys):
     image = shared_data / "crowded" / "2mass_k_galactic_center_720px.fits"
     out = tmp_path / "run"
     base = ["run", str(image), "--fwhm", "1.5", "--density", "1", "--out", str(out), "--kinds", "point",
@@ -309,6 +309,11 @@ def test_crowded_2mass_field_runs_on_the_observed_image_and_reports_the_confusio
     assert bright.sum() >= 500
     assert detected[bright].mean() < 0.6
     assert summary["kinds"]["point"]["m50_binned"] < predicted - 2.0
+    # the ratios stage said that the range starts inside the transition, and `info` repeats it
+    bright_end = summary["kinds"]["point"]["bright_end"]
+    assert bright_end["ratio"] < 0.8 and bright_end["warning"].startswith("the brightest injections")
+    assert main(["info", str(out)]) == 0
+    assert f"  - point ratios: {bright_end['warning']}" in capsys.readouterr().out.splitlines()
 
 
 @pytest.mark.slow  # about 10 s: one small run and its report
