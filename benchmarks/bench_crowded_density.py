@@ -12,9 +12,10 @@ completeness falls with their number.  This is the measurement behind
 
 Each run directory resumes, so an interrupted benchmark continues where it stopped.  The default
 densities are 1.393 per arcmin^2 (5021 per realization: what the placement holds, the automatic
-density before the ceiling; 40 per 64-pixel mesh), 0.14 (505; 4 per mesh) and 0.0444 (160; the
-ceiling of 1.25 per mesh), with 4, 40 and 100 realizations (about 20,000, 20,000 and 16,000
-injections).
+density before the ceiling; 40 per 64-pixel mesh), 0.14 (505; 4 per mesh), 0.0444 (160; the
+ceiling of 1.25 per mesh) and 0.0148 (53), with 4, 40, 100 and 300 realizations (about 20,000,
+20,000, 16,000 and 16,000 injections; about 70 min on two cores, nearly all of it the 400
+detections of the last two).
 """
 
 from __future__ import annotations
@@ -29,7 +30,7 @@ import numpy as np
 from astropy.io import fits
 
 IMAGE = Path(__file__).resolve().parents[1] / ".." / "shared" / "data" / "crowded" / "2mass_k_galactic_center_720px.fits"
-RUNS = ((1.393, 4), (0.14, 40), (0.0444, 100))  # (per arcmin^2, realizations)
+RUNS = ((1.393, 4), (0.14, 40), (0.0444, 100), (0.0148, 300))  # (per arcmin^2, realizations)
 MESHES = 721 * 720 / 64 ** 2
 
 

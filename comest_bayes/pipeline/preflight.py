@@ -61,8 +61,9 @@ PER_BACKGROUND_MESH = 0.25
 #: arcmin^2 would put tens of injections in each mesh.  On the shared 2MASS field (5"/px, 721x720),
 #: what the placement holds, 5021 point sources per realization (38 usable per mesh, as many as the
 #: sources the image has), lowered the measured completeness by 0.06-0.12 at 8.6-11.1 mag against 160
-#: per realization (1.2 per mesh) and moved the binned m50 from 10.16 to 9.57 mag; 505 (3.8 per mesh)
-#: sat 0.03 below 160 at 8.6-10.1 mag (benchmarks/bench_crowded_density.py, docs/usage.md).
+#: per realization (1.2 per mesh), and moved the binned m50 to 9.57 mag from 9.98-10.16; 53 per
+#: realization (0.4 per mesh) agreed with 160 within 1.5 sd in every 0.5-mag bin
+#: (benchmarks/bench_crowded_density.py, docs/usage.md).
 MAX_PER_BACKGROUND_MESH = 1.25
 #: Fraction of the random-packing count at the minimum separation (``JAMMING_COVERAGE``) the automatic
 #: density fills at most: dart throwing still places every injection there without stalling.
