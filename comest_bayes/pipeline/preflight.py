@@ -23,7 +23,8 @@ from comest_bayes.inject.psfmodel import make_psf
 from comest_bayes.seeding import rng_for
 
 __all__ = ["MIN_USABLE_INJECTIONS", "FEW_USABLE_INJECTIONS", "SMALLEST_SEEING_PIX", "PUBLISHED_DENSITY",
-           "TARGET_PER_REALIZATION", "PER_BACKGROUND_MESH", "MAX_PER_BACKGROUND_MESH", "HOLD_FRACTION", "BRIGHT_REACH", "BRIGHT_NEIGHBOUR_WARN", "bright_neighbours", "DensityChoice", "choose_density",
+           "TARGET_PER_REALIZATION", "PER_BACKGROUND_MESH", "MAX_PER_BACKGROUND_MESH", "HOLD_FRACTION",
+           "BRIGHT_REACH", "BRIGHT_NEIGHBOUR_WARN", "bright_neighbours", "DensityChoice", "choose_density",
            "choose_densities", "InjectionBudget", "stamp_half_size", "injection_budget", "check_injection_count",
            "budget_warnings", "injection_memory", "available_memory", "check_memory"]
 
@@ -465,7 +466,7 @@ def check_injection_count(*, shape, mask, pixel_scale: float, fwhm_pix: float | 
 #: How far a bright point injection takes its fainter neighbours with it, in units of its detection
 #: isophote's radius (:func:`comest_bayes.ratios.depth.isophote_radius_pix`).  Measured on 1024^2 white
 #: noise (FWHM 3 px, Moffat beta 3, threshold 1.5 sigma, 175 point injections per realization, 60
-#: realizations, 11.4-22.9 mag with m5 = 21.4): injections of 20.5-22 mag were detected 3-6% of the
+#: realizations, 11.4-22.9 mag with m5 = 21.4): injections of 20.5-22 mag were detected 0-6% of the
 #: time within 12-20 px of one brighter than 14 mag (isophote radius 9-13 px), 25% within 20-30 px and
 #: 40-42% beyond (docs/injection.md, "Bright injections and their neighbours").
 BRIGHT_REACH = 2.0

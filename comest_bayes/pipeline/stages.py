@@ -31,7 +31,8 @@ from comest_bayes.io.rundir import RunDirectory, file_checksum, atomic_path
 from comest_bayes.seeding import Stream, seed_sequence, int_seed_for
 from comest_bayes.io.jsonio import dumps
 from comest_bayes.io import layout
-from comest_bayes.pipeline.preflight import SMALLEST_SEEING_PIX, BRIGHT_NEIGHBOUR_WARN, BRIGHT_REACH, bright_neighbours, budget_warnings, check_injection_count, check_memory, choose_densities, FEW_USABLE_INJECTIONS
+from comest_bayes.pipeline.preflight import SMALLEST_SEEING_PIX, budget_warnings, check_injection_count, check_memory, choose_densities, FEW_USABLE_INJECTIONS
+from comest_bayes.pipeline.preflight import BRIGHT_NEIGHBOUR_WARN, BRIGHT_REACH, bright_neighbours
 from comest_bayes.detect.psf import injection_psf, measure_seeing, BAD_FLAGS, point_size_check, select_stars
 from comest_bayes.sourcefree import build_source_free, format_percent, judge_replacement
 from comest_bayes.pipeline.executors import TaskRunner, run_tasks
