@@ -289,7 +289,9 @@ class InjectionConfig:
     min_sep : float
         Minimum separation between injections in arcsec, so injections do not
         blend with each other; 0 (default) for automatic: 4 FWHM for point
-        sources, max(4 FWHM, 8 x the largest half-light radius) for galaxies.
+        sources (with a ``mag_range`` set far brighter than the detection
+        limit, the reach of its brightest injection: ``docs/injection.md``),
+        max(4 FWHM, 8 x the largest half-light radius) for galaxies.
     psf : str
         ``moffat``, ``gaussian``, ``kolmogorov`` (of the image FWHM) or the path
         of a FITS PSF image.

@@ -144,6 +144,10 @@ class DensityChoice:
         would put more than ``MAX_PER_BACKGROUND_MESH`` in each background mesh: lowered to that).
     warning : str or None
         A user's density above ``MAX_PER_BACKGROUND_MESH`` per background mesh: what it risks.
+    min_sep_arcsec : float or None
+        A separation the run chose for this kind instead of the automatic one (point sources of a
+        range far brighter than the detection limit: ``comest_bayes.pipeline.stages``); None when
+        the kind keeps ``injection.min_sep``'s rule.
     reason : str
         One sentence for the log and the report.
     area_arcmin2, published, target, mesh_cap, hold_cap : float
@@ -171,6 +175,7 @@ class DensityChoice:
     min_sep_pix: float
     sizing: dict | None = None
     warning: str | None = None
+    min_sep_arcsec: float | None = None
 
     def to_dict(self) -> dict:
         d = dict(self.__dict__)

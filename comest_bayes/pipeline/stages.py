@@ -32,7 +32,7 @@ from comest_bayes.seeding import Stream, seed_sequence, int_seed_for
 from comest_bayes.io.jsonio import dumps
 from comest_bayes.io import layout
 from comest_bayes.pipeline.preflight import SMALLEST_SEEING_PIX, budget_warnings, check_injection_count, check_memory, choose_densities, FEW_USABLE_INJECTIONS
-from comest_bayes.pipeline.preflight import BRIGHT_NEIGHBOUR_WARN, BRIGHT_REACH, bright_neighbours
+from comest_bayes.pipeline.preflight import BRIGHT_NEIGHBOUR_WARN, BRIGHT_REACH, bright_neighbours, choose_density
 from comest_bayes.detect.psf import injection_psf, measure_seeing, BAD_FLAGS, point_size_check, select_stars
 from comest_bayes.sourcefree import build_source_free, format_percent, judge_replacement
 from comest_bayes.pipeline.executors import TaskRunner, run_tasks
@@ -334,6 +334,22 @@ def _run_pipeline(options: ImageOptions, config: RunConfig, out_dir, *, log, com
     # how many injections per realization: the user's density, or chosen per kind from the image
     densities = choose_densities(shape=image.shape, pixel_scale=image.pixel_scale, fwhm_pix=float(fwhm["fwhm"]),
                                  injection=config.injection, back_size=config.detection.back_size)
+    # point sources of a range far brighter than the detection limit keep the brightest one's reach apart
+    sep = None
+    if "point" in config.injection.kinds and config.injection.min_sep <= 0 and config.injection.mag_range:
+        if det is None:
+            det = _load_detection(run, image)
+        sep = _bright_separation(config, image, det, psf_choice, densities.get("point"), float(fwhm["fwhm"]))
+    if sep is not None:
+        wide = choose_density("point", shape=image.shape, pixel_scale=image.pixel_scale, fwhm_pix=float(fwhm["fwhm"]),
+                              injection=replace(config.injection, min_sep=sep), back_size=config.detection.back_size)
+        densities["point"] = replace(wide, min_sep_arcsec=sep, sizing={
+            **(wide.sizing or {}), "separation": f"{sep:.3g}\" between all pairs: the reach of the range's "
+                                                 f"brightest injection (twice its detection isophote's radius)"},
+            reason=(
+            f"{wide.reason}; separation {sep:.3g}\" ({sep / image.pixel_scale:.1f} px) instead of 4 FWHM: the "
+            f"range's brightest injections reach that far above the detection threshold, and a fainter one "
+            f"nearer is lost in them (docs/injection.md)"))
     budgets = check_injection_count(shape=image.shape, mask=image.mask, pixel_scale=image.pixel_scale,
                                     fwhm_pix=float(fwhm["fwhm"]), injection=config.injection,
                                     fwhm_given=image.fwhm is not None, densities=densities)
@@ -441,11 +457,12 @@ def _headers(image: ImageData) -> list:
     return headers
 
 
-def _injection_psf_profile(config: RunConfig, image: ImageData, psf_choice: dict | None):
-    """The GalSim profile (arcsec) the injections use, as decided by :func:`comest_bayes.detect.psf.injection_psf`."""
+def _injection_psf_profile(config: RunConfig, image: ImageData, psf_choice: dict | None, fwhm: float | None = None):
+    """The GalSim profile (arcsec) the injections use, as decided by :func:`comest_bayes.detect.psf.injection_psf`
+    (``fwhm`` in pixels, default ``image.fwhm``)."""
 
     psf_choice = psf_choice or {}
-    return make_psf(config.injection, image.fwhm, image.pixel_scale, beta=psf_choice.get("beta"),
+    return make_psf(config.injection, image.fwhm if fwhm is None else fwhm, image.pixel_scale, beta=psf_choice.get("beta"),
                     pixel_integrated=bool(psf_choice.get("pixel_integrated", False)))
 
 
@@ -464,28 +481,59 @@ def _auto_mag_range(image: ImageData, det: DetectionResult, nea: float) -> tuple
     return (round(m5 - 5.0, 2), round(m5 + 1.5, 2))
 
 
-def _bright_neighbour_check(config: RunConfig, image: ImageData, det: DetectionResult, psf_choice: dict | None,
-                            mag_range, choice: dict | None) -> tuple[dict | None, str | None]:
-    """:func:`bright_neighbours` of the point injections of a run, and the warning when their share is large.
+def _isophote_radii(config: RunConfig, image: ImageData, det: DetectionResult, psf_choice: dict | None,
+                    fwhm: float | None = None):
+    """``radius_at(mags)``: detection isophote radii (pixels) of point injections of these magnitudes.
 
-    The isophotes are those of the injection PSF filtered with the detection kernel, on the median
-    detection noise at the detection threshold.  Returns ``(record, warning or None)``; ``(None, None)``
-    without point injections or a density choice.
+    The injection PSF (of ``fwhm`` pixels, default ``image.fwhm``) filtered with the detection
+    kernel, at the detection threshold on the median detection noise
+    (:func:`comest_bayes.ratios.depth.isophote_radius_pix`).
     """
-    if "point" not in config.injection.kinds or not choice:
-        return None, None
+    fwhm = float(image.fwhm if fwhm is None else fwhm)
     sigma = float(np.median(det.noise[~image.mask]))
-    size = int(min(401, max(65, 2 * math.ceil(15.0 * float(image.fwhm)) + 1)))
-    psf = _injection_psf_profile(config, image, psf_choice).drawImage(nx=size, ny=size, scale=image.pixel_scale,
-                                                                      method="no_pixel").array
+    size = int(min(401, max(65, 2 * math.ceil(15.0 * fwhm) + 1)))
+    psf = _injection_psf_profile(config, image, psf_choice, fwhm).drawImage(nx=size, ny=size, scale=image.pixel_scale,
+                                                                            method="no_pixel").array
     kernel = filter_kernel(config.detection.filter)
 
     def radius_at(mags):
         return isophote_radius_pix(psf, 10.0 ** (-0.4 * (np.asarray(mags) - image.zeropoint)), sigma,
                                    config.detection.thresh, kernel)
 
+    return radius_at
+
+
+def _bright_separation(config: RunConfig, image: ImageData, det: DetectionResult, psf_choice: dict | None,
+                       choice, fwhm: float) -> float | None:
+    """The point sources' separation (arcsec) for a range far brighter than the detection limit, or None.
+
+    Only for an automatic separation (``injection.min_sep = 0``) and a range the user set (the
+    automatic range, from m5 - 5, puts about 0.01% of the injections within a brighter one's reach):
+    when more than ``BRIGHT_NEIGHBOUR_WARN`` of them would be, the separation becomes the reach of
+    the brightest injection, ``BRIGHT_REACH`` times its isophote's radius.
+    """
+    inj = config.injection
+    if "point" not in inj.kinds or inj.min_sep > 0 or not inj.mag_range or choice is None:
+        return None
+    rec = bright_neighbours(inj.mag_range, choice.per_realization, float((~image.mask).sum()), choice.min_sep_pix,
+                            _isophote_radii(config, image, det, psf_choice, fwhm))
+    if rec["fraction"] <= BRIGHT_NEIGHBOUR_WARN:
+        return None
+    return round(BRIGHT_REACH * rec["radius_bright"] * image.pixel_scale, 4)
+
+
+def _bright_neighbour_check(config: RunConfig, image: ImageData, det: DetectionResult, psf_choice: dict | None,
+                            mag_range, choice: dict | None) -> tuple[dict | None, str | None]:
+    """:func:`bright_neighbours` of the point injections of a run, and the warning when their share is large.
+
+    Returns ``(record, warning or None)``; ``(None, None)`` without point injections or a density
+    choice.  With the separation :func:`_bright_separation` chose, the share is near 0; the warning
+    is left for a separation the user set too small.
+    """
+    if "point" not in config.injection.kinds or not choice:
+        return None, None
     rec = bright_neighbours(mag_range, float(choice["per_realization"]), float((~image.mask).sum()),
-                            float(choice["min_sep_pix"]), radius_at)
+                            float(choice["min_sep_pix"]), _isophote_radii(config, image, det, psf_choice))
     if rec["fraction"] <= BRIGHT_NEIGHBOUR_WARN:
         return rec, None
     sep_arcsec = BRIGHT_REACH * rec["radius_bright"] * image.pixel_scale  # the brightest one's reach
@@ -641,9 +689,9 @@ def _injection_stages(run: RunDirectory, image: ImageData, det: DetectionResult,
                     f"{bright['ratio']:.0%} complete ({bright['k']}/{bright['n']}): the injected range starts inside "
                     "the transition (crowding or blending can make the completeness fall far brighter than the "
                     "5-sigma depth), so the bright plateau was never measured and the models' plateau and bright side "
-                    "are their priors' extrapolation; inject brighter (--set injection.mag_range=[BRIGHT,FAINT]), and "
-                    "keep injections far brighter than the 5-sigma depth apart with a larger injection.min_sep (their "
-                    "light reaches their neighbours: docs/bayesian.md, Stability)")
+                    "are their priors' extrapolation; inject brighter (--set injection.mag_range=[BRIGHT,FAINT]; point "
+                    "sources are then kept further apart by the run, galaxies need a larger injection.min_sep: their "
+                    "light reaches their neighbours, docs/bayesian.md, Stability)")
             kinds[kind]["bright_end"] = {**bright, "warning": text}
             log(f"warning: ratios: {kind}: {text}")
     timings["ratios"] = round(time.perf_counter() - t0, 3)
@@ -704,7 +752,10 @@ def _contexts_by_kind(ctx, densities: dict) -> dict:
     for kind in ctx.injection.kinds:
         choice = densities.get(kind) or {}
         density = choice.get("density")
-        out[kind] = ctx if not density else replace(ctx, injection=replace(ctx.injection, density=float(density)))
+        inj = ctx.injection if not density else replace(ctx.injection, density=float(density))
+        if choice.get("min_sep_arcsec"):  # a separation the run chose for this kind (_bright_separation)
+            inj = replace(inj, min_sep=float(choice["min_sep_arcsec"]))
+        out[kind] = ctx if inj is ctx.injection else replace(ctx, injection=inj)
     return out
 
 

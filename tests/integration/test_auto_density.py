@@ -81,26 +81,50 @@ def test_coarse_pixels_get_at_most_one_and_a_quarter_injections_per_background_m
     assert abs(len(injected) - 250) <= 3.5 * np.sqrt(250)  # Poisson(125) twice; the placement would give ~2000
 
 
-def test_a_range_far_brighter_than_the_default_warns_that_bright_injections_take_their_neighbours(
+def test_a_range_far_brighter_than_the_default_keeps_the_bright_injections_reach_apart(
         fine_small_image, tmp_path, capsys):
+    from scipy.spatial import cKDTree
+
     # the default range (m5 - 5 to m5 + 1.5): the brightest injection's isophote (2 FWHM = 6 px) stays
     # within half the 12 px separation, so almost no injection falls within a brighter one's reach
     out = tmp_path / "default"
     assert _run(fine_small_image, out) == 0
     assert "warning: injection:" not in capsys.readouterr().out
-    stage = json.loads((out / "run.json").read_text())["stages"]["baseline"]
-    quiet = stage["bright_neighbours"]
+    state = json.loads((out / "run.json").read_text())
+    quiet = state["stages"]["baseline"]["bright_neighbours"]
     assert quiet["fraction"] < 1e-3 and quiet["radius_bright"] < 0.5 * quiet["min_sep_pix"] + 0.5
-    lo, hi = stage["mag_range"]
-    # five magnitudes brighter: the brightest spreads over 2.4 x as many pixels' radius, and the run says
-    # how many injections it puts at risk and the separation that keeps them apart
+    assert state["injection_density"]["point"]["min_sep_arcsec"] is None
+    lo, hi = state["stages"]["baseline"]["mag_range"]
+    brighter = ["--set", f"injection.mag_range=[{lo - 5:.2f},{hi:.2f}]"]
+
+    # five magnitudes brighter: the brightest spreads over 2.4 x the radius; the run keeps every pair
+    # that reach apart (the brightest one's reach: twice its isophote's radius), so none is at risk
     out = tmp_path / "bright"
-    assert _run(fine_small_image, out, "--set", f"injection.mag_range=[{lo - 5:.2f},{hi:.2f}]") == 0
+    assert _run(fine_small_image, out, *brighter) == 0
     log = capsys.readouterr().out
-    rec = json.loads((out / "run.json").read_text())["stages"]["baseline"]["bright_neighbours"]
-    assert rec["fraction"] > 0.01 and rec["radius_bright"] > 2 * quiet["radius_bright"]
+    state = json.loads((out / "run.json").read_text())
+    choice = state["injection_density"]["point"]
+    rec = state["stages"]["baseline"]["bright_neighbours"]
+    assert rec["radius_bright"] > 2 * quiet["radius_bright"] and rec["fraction"] < 1e-6 and rec["warning"] is None
+    assert choice["min_sep_arcsec"] == pytest.approx(2 * rec["radius_bright"] * 0.05, abs=1e-4)
+    assert choice["min_sep_pix"] == pytest.approx(choice["min_sep_arcsec"] / 0.05)
+    assert f'separation {choice["min_sep_arcsec"]:.3g}" ({choice["min_sep_pix"]:.1f} px) instead of 4 FWHM' in log
+    assert "warning: injection:" not in log
+    truth = Table.read(out / "catalogs" / "point_injected.fits")
+    for r in set(truth["realization"]):
+        xy = np.c_[truth["x"], truth["y"]][truth["realization"] == r]
+        if len(xy) > 1:
+            assert cKDTree(xy).query(xy, k=2)[0][:, 1].min() >= choice["min_sep_pix"] - 1e-6
+
+    # a separation the user sets is kept; too small for the range, it gets a warning that says so
+    out = tmp_path / "user_sep"
+    assert _run(fine_small_image, out, *brighter, "--set", "injection.min_sep=0.6") == 0
+    log = capsys.readouterr().out
+    state = json.loads((out / "run.json").read_text())
+    rec = state["stages"]["baseline"]["bright_neighbours"]
+    assert state["injection_density"]["point"]["min_sep_arcsec"] is None and rec["min_sep_pix"] == pytest.approx(12)
     warned = [line for line in log.splitlines() if line.startswith("warning: injection: point injections brighter")]
-    assert len(warned) == 1
+    assert len(warned) == 1 and rec["fraction"] > 0.01
     assert f"about {100 * rec['fraction']:.0f}% of the injections" in warned[0]
     assert f"--set injection.min_sep={2 * rec['radius_bright'] * 0.05:.3g} (arcsec)" in warned[0]
     # `comest-bayes info` lists it with the run's other warnings
