@@ -179,6 +179,7 @@ class PosteriorDiagnostics:
     def to_dict(self) -> dict:
         """JSON-ready dict (lists of floats; non-finite numbers become ``None``)."""
         return {
+            "method": "emcee",
             "names": list(self.names),
             "tau": [json_float(t) for t in self.tau],
             "ess": [json_float(e) for e in self.ess],

@@ -64,7 +64,8 @@ def model_facts(entry: dict | None) -> dict | None:
         "m50": _interval(entry.get("m50")),
         "m80": _interval(entry.get("m80")),
         "m90": _interval(entry.get("m90")),
-        "sampler": diag.get("method"),
+        # runs before 2026-11-29 stored emcee's diagnostics without the method's name
+        "sampler": diag.get("method") or ("emcee" if "nwalkers" in diag else None),
         "converged": diag.get("converged"),
         "warnings": list(entry.get("warnings") or []),
         "posterior_file": entry.get("posterior_file"),

@@ -4,6 +4,7 @@ run directories made by hand, through `comest-bayes info` and directly, and clea
 
 import json
 
+import numpy as np
 import pytest
 
 from comest_bayes.cli import main
@@ -186,6 +187,16 @@ def test_model_facts_of_a_full_a_skipped_and_a_missing_entry():
     assert model_facts({"name": None, "requested": "purity", "skipped": "too few"}) == \
         {"name": None, "requested": "purity", "skipped": "too few"}
     assert model_facts(None) is None and model_facts({}) is None
+    # emcee's diagnostics name their sampler (a run before 2026-11-29 did not: its walkers say it)
+    from comest_bayes.bayes.inference import PosteriorDiagnostics
+
+    diag = PosteriorDiagnostics(names=["m50_0"], tau=np.array([30.0]), ess=np.array([500.0]), acceptance_mean=0.3,
+                                acceptance_min=0.2, nsteps=2000, burn=60, nwalkers=16, min_ess=400.0,
+                                converged=False, warnings=[], seconds=1.0).to_dict()
+    assert diag["method"] == "emcee"
+    for stored in (diag, {k: v for k, v in diag.items() if k != "method"}):
+        entry = {**_entry("spline_depth", 23.9, 23.8, 24.0, 23.7, 24.1), "diagnostics": stored}
+        assert model_facts(entry)["sampler"] == "emcee" and model_facts(entry)["converged"] is False
     assert model_facts({"name": "x", "m50": {"median": None}})["m50"] is None
 
 
