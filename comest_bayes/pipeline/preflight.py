@@ -499,8 +499,9 @@ def bright_neighbours(mag_range, per_realization: float, area_pix: float, min_se
     dict
         ``fraction`` (the share), ``mag_reach`` (the faintest magnitude whose
         reach passes the separation, None when none does), ``radius_bright``
-        (the isophote radius of the brightest injection, pixels) and
-        ``min_sep_pix``.
+        (the isophote radius of the brightest injection, pixels),
+        ``reach_bright`` (its reach, pixels: the separation that keeps every
+        pair out of each other's reach) and ``min_sep_pix``.
     """
     lo, hi = (float(v) for v in mag_range)
     m = np.linspace(lo, hi, nmag)
@@ -509,7 +510,8 @@ def bright_neighbours(mag_range, per_realization: float, area_pix: float, min_se
     fraction = float(per_realization) / float(area_pix) * float(np.mean(excess)) if area_pix > 0 else 0.0
     over = m[reach > min_sep_pix]
     return {"fraction": fraction, "mag_reach": float(over.max()) if over.size else None,
-            "radius_bright": float(reach[0] / BRIGHT_REACH), "min_sep_pix": float(min_sep_pix)}
+            "radius_bright": float(reach[0] / BRIGHT_REACH), "reach_bright": float(reach[0]),
+            "min_sep_pix": float(min_sep_pix)}
 
 
 def budget_warnings(budgets, nsims: int) -> list[str]:

@@ -32,7 +32,7 @@ from comest_bayes.seeding import Stream, seed_sequence, int_seed_for
 from comest_bayes.io.jsonio import dumps
 from comest_bayes.io import layout
 from comest_bayes.pipeline.preflight import SMALLEST_SEEING_PIX, budget_warnings, check_injection_count, check_memory, choose_densities, FEW_USABLE_INJECTIONS
-from comest_bayes.pipeline.preflight import BRIGHT_NEIGHBOUR_WARN, BRIGHT_REACH, bright_neighbours, choose_density
+from comest_bayes.pipeline.preflight import BRIGHT_NEIGHBOUR_WARN, bright_neighbours, choose_density
 from comest_bayes.detect.psf import injection_psf, measure_seeing, BAD_FLAGS, point_size_check, select_stars
 from comest_bayes.sourcefree import build_source_free, format_percent, judge_replacement
 from comest_bayes.pipeline.executors import TaskRunner, run_tasks
@@ -507,19 +507,18 @@ def _bright_separation(config: RunConfig, image: ImageData, det: DetectionResult
                        choice, fwhm: float) -> float | None:
     """The point sources' separation (arcsec) for a range far brighter than the detection limit, or None.
 
-    Only for an automatic separation (``injection.min_sep = 0``) and a range the user set (the
-    automatic range, from m5 - 5, puts about 0.01% of the injections within a brighter one's reach):
-    when more than ``BRIGHT_NEIGHBOUR_WARN`` of them would be, the separation becomes the reach of
-    the brightest injection, ``BRIGHT_REACH`` times its isophote's radius.
+    The caller asks only for an automatic separation (``injection.min_sep = 0``) and a range the
+    user set (the automatic range, from m5 - 5, puts about 0.01% of the injections within a
+    brighter one's reach): when more than ``BRIGHT_NEIGHBOUR_WARN`` of them would be, the
+    separation becomes the reach of the brightest injection.
     """
-    inj = config.injection
-    if "point" not in inj.kinds or inj.min_sep > 0 or not inj.mag_range or choice is None:
+    if choice is None:
         return None
-    rec = bright_neighbours(inj.mag_range, choice.per_realization, float((~image.mask).sum()), choice.min_sep_pix,
-                            _isophote_radii(config, image, det, psf_choice, fwhm))
+    rec = bright_neighbours(config.injection.mag_range, choice.per_realization, float((~image.mask).sum()),
+                            choice.min_sep_pix, _isophote_radii(config, image, det, psf_choice, fwhm))
     if rec["fraction"] <= BRIGHT_NEIGHBOUR_WARN:
         return None
-    return round(BRIGHT_REACH * rec["radius_bright"] * image.pixel_scale, 4)
+    return round(rec["reach_bright"] * image.pixel_scale, 4)
 
 
 def _bright_neighbour_check(config: RunConfig, image: ImageData, det: DetectionResult, psf_choice: dict | None,
@@ -536,7 +535,7 @@ def _bright_neighbour_check(config: RunConfig, image: ImageData, det: DetectionR
                             float(choice["min_sep_pix"]), _isophote_radii(config, image, det, psf_choice))
     if rec["fraction"] <= BRIGHT_NEIGHBOUR_WARN:
         return rec, None
-    sep_arcsec = BRIGHT_REACH * rec["radius_bright"] * image.pixel_scale  # the brightest one's reach
+    sep_arcsec = rec["reach_bright"] * image.pixel_scale
     return rec, (f"point injections brighter than {rec['mag_reach']:.1f} mag spread above the detection threshold "
                  f"over more than half their {rec['min_sep_pix']:.1f} px separation (the brightest, "
                  f"{mag_range[0]:.2f} mag, over {rec['radius_bright']:.1f} px), and a fainter injection that close is "

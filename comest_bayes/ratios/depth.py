@@ -144,7 +144,7 @@ def point_source_depth_nea(sigma, zeropoint: float, nea: float, nsigma: float = 
     return float(zeropoint - 2.5 * np.log10(nsigma * float(sigma) * np.sqrt(_positive("nea", nea))))
 
 
-def isophote_radius_pix(psf_image, flux, sigma: float, thresh: float, kernel=None) -> np.ndarray:
+def isophote_radius_pix(psf_image, flux, sigma: float, thresh: float, kernel=None) -> np.ndarray | float:
     """Radius (pixels) of the detection isophote of a point source: ``sqrt(npix / pi)``.
 
     ``npix`` counts the pixels where the source's image, filtered with the

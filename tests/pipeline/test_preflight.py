@@ -199,7 +199,7 @@ def test_bright_neighbours_counts_the_injections_within_a_brighter_ones_reach():
     rec = bright_neighbours((20.0, 22.0), 100.0, 1e6, 12.0, lambda m: np.full(np.shape(m), 8.0))
     assert BRIGHT_REACH == 2.0
     assert rec["fraction"] == pytest.approx(100.0 / 1e6 * np.pi * (16.0 ** 2 - 12.0 ** 2))
-    assert rec["mag_reach"] == pytest.approx(22.0) and rec["radius_bright"] == 8.0
+    assert rec["mag_reach"] == pytest.approx(22.0) and rec["radius_bright"] == 8.0 and rec["reach_bright"] == 16.0
     # reach grows 2 px per magnitude brighter: only the bright half of the range passes the separation
     rec = bright_neighbours((20.0, 24.0), 100.0, 1e6, 12.0, lambda m: 6.0 + (22.0 - np.asarray(m)), nmag=4001)
     m = np.linspace(20.0, 24.0, 4001)
