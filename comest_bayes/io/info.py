@@ -65,6 +65,14 @@ def format_info(info: dict) -> str:
         density = "density automatic"
     lines.append(f"config: kinds {', '.join(cfg.get('kinds') or [])}; {cfg.get('nsims')} realizations per kind; "
                  f"{density}; model {cfg.get('model')}; seed {cfg.get('seed')}")
+    rng = cfg.get("range") or {}
+    if rng.get("mag_range"):
+        lo, hi = rng["mag_range"]
+        how = {"user": "as set", "m5": "automatic: m5 - 5 to m5 + 1.5",
+               "confused": (f"automatic, a confused field: from where brighter sources cover "
+                            f"{100 * (rng.get('cover_bright') or 0):.0f}% of the image, instead of m5 - 5 = "
+                            f"{rng.get('usual_bright', float('nan')):.2f}")}.get(rng.get("rule"))
+        lines.append(f"injected magnitudes: {lo:.2f}-{hi:.2f}" + (f" ({how})" if how else ""))
     if info["stages"]:
         lines.append("stages done: " + ", ".join(f"{k} ({v:.1f} s)" if isinstance(v, (int, float)) else k
                                                   for k, v in info["stages"].items()))

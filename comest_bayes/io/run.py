@@ -432,7 +432,11 @@ def _facts(run: "Run") -> dict:
                    "seed": config.get("seed"),
                    # the density each kind was injected at (the automatic choice when ``density`` is 0)
                    "density_used": {k: d.get("density") for k, d in (state.get("injection_density") or {}).items()
-                                    if isinstance(d, dict)}},
+                                    if isinstance(d, dict)},
+                   # the magnitude range and how it was chosen (runs before 2026-11-29: the baseline's range only)
+                   "range": state.get("injection_range")
+                   or ({"mag_range": (recorded.get("baseline") or {}).get("mag_range")}
+                       if (recorded.get("baseline") or {}).get("mag_range") else None)},
         "stages": stages,
         "realizations": realizations,
         "kinds": kinds,

@@ -24,7 +24,8 @@ from comest_bayes.seeding import rng_for
 
 __all__ = ["MIN_USABLE_INJECTIONS", "FEW_USABLE_INJECTIONS", "SMALLEST_SEEING_PIX", "PUBLISHED_DENSITY",
            "TARGET_PER_REALIZATION", "PER_BACKGROUND_MESH", "MAX_PER_BACKGROUND_MESH", "HOLD_FRACTION",
-           "BRIGHT_REACH", "BRIGHT_NEIGHBOUR_WARN", "bright_neighbours", "DensityChoice", "choose_density",
+           "BRIGHT_REACH", "BRIGHT_NEIGHBOUR_WARN", "bright_neighbours", "CONFUSION_SPAN", "CONFUSION_RISE",
+           "CONFUSION_COVER", "CONFUSION_MAX_SHIFT", "footprint_cover", "confused_bright_end", "DensityChoice", "choose_density",
            "choose_densities", "InjectionBudget", "stamp_half_size", "injection_budget", "check_injection_count",
            "budget_warnings", "injection_memory", "available_memory", "check_memory"]
 
@@ -512,6 +513,80 @@ def bright_neighbours(mag_range, per_realization: float, area_pix: float, min_se
     return {"fraction": fraction, "mag_reach": float(over.max()) if over.size else None,
             "radius_bright": float(reach[0] / BRIGHT_REACH), "reach_bright": float(reach[0]),
             "min_sep_pix": float(min_sep_pix)}
+
+
+#: The automatic range's confusion check looks at the detected sources in the first CONFUSION_SPAN mag
+#: of the range (from its bright end, m5 - 5, fainter).
+CONFUSION_SPAN = 2.0
+#: Share of the unmasked area their detection footprints may cover before the field counts as confused.
+#: Measured on the run's first detection (benchmarks/bench_confusion.py): 0.0965 on the shared 2MASS
+#: Galactic-centre frame, where point injections at m5 - 5 are only 71% complete; 0.0113 on the JWST
+#: Abell 2744 frame, 0.0068 on KiDS, 0.0064 on the CTIO frame and 0.0033 on the DECam N6 cutout, whose
+#: bright ends are complete.  On synthetic star fields: 0.036 at 100 stars per arcmin^2 brighter than m5
+#: (bright end 0.94 complete), 0.11 at 300 (0.81; 0.92 from the brighter start) and at 1000 (0.58; 0.99).
+CONFUSION_RISE = 0.05
+#: On a confused field the range starts where the detected sources brighter than it cover this share of
+#: the unmasked area: an injection there rarely lands on a brighter source.  On the 2MASS frame that is
+#: 4.4 mag (m5 - 9.2), where point injections were 0.99 complete, against 0.95 at 5.7 mag (where a share
+#: of 0.10 would start) and 0.71 at the usual bright end, 8.6 mag.
+CONFUSION_COVER = 0.05
+#: Farthest (mag) a confused field's bright end moves above the usual m5 - 5.
+CONFUSION_MAX_SHIFT = 5.0
+
+
+def footprint_cover(segmentation: np.ndarray, ids, mags, mask: np.ndarray | None = None):
+    """Detection footprints' share of the unmasked area, by source magnitude.
+
+    Returns ``(mag, share)``: the sources' magnitudes in increasing order
+    (those with a finite magnitude) and the share of the unmasked pixels
+    their segmentation footprints cover, each source's alone (sum a slice for
+    the sources in a magnitude interval; the footprints do not overlap).
+    """
+    seg = np.asarray(segmentation)
+    good = np.ones(seg.shape, bool) if mask is None else ~np.asarray(mask, bool)
+    area = int(good.sum())
+    ids = np.asarray(ids, dtype=np.int64)
+    mags = np.asarray(mags, dtype=float)
+    if area == 0 or ids.size == 0:
+        return np.zeros(0), np.zeros(0)
+    counts = np.bincount(seg[good].ravel().astype(np.int64), minlength=int(max(ids.max(), seg.max())) + 1)
+    keep = np.isfinite(mags) & (ids > 0)
+    order = np.argsort(mags[keep], kind="stable")
+    return mags[keep][order], counts[ids[keep]][order] / area
+
+
+def confused_bright_end(mag, share, lo: float) -> dict:
+    """Where the automatic range should start on a confused field (see the ``CONFUSION_*`` settings).
+
+    ``mag, share`` come from :func:`footprint_cover`; ``lo`` is the usual
+    bright end (m5 - 5).  The field is confused when the footprints of the
+    sources in ``[lo, lo + CONFUSION_SPAN)`` cover more than
+    ``CONFUSION_RISE`` of the area: injections there land on sources of their
+    own brightness or brighter, and the completeness falls from the first
+    injected magnitude.  The bright end then moves to the magnitude where the
+    sources brighter than it cover ``CONFUSION_COVER``, by at most
+    ``CONFUSION_MAX_SHIFT`` mag.
+
+    Returns
+    -------
+    dict
+        ``rise`` (the share in the first span), ``confused`` (bool),
+        ``bright`` (the new bright end, ``lo`` when not confused) and
+        ``cover_bright`` (the share covered by sources brighter than it).
+    """
+    mag = np.asarray(mag, float)
+    share = np.asarray(share, float)
+    lo = float(lo)
+    rise = float(share[(mag >= lo) & (mag < lo + CONFUSION_SPAN)].sum())
+    brighter = np.cumsum(share)  # share covered by the sources up to and including each one
+    bright = lo
+    if rise > CONFUSION_RISE:
+        over = np.flatnonzero(brighter > CONFUSION_COVER)
+        # the magnitude of the source whose footprint takes the cover past the share, rounded down
+        at = float(mag[over[0]]) if over.size else lo
+        bright = max(min(math.floor(at * 10.0) / 10.0, lo), lo - CONFUSION_MAX_SHIFT)
+    cover = float(share[mag < bright].sum())
+    return {"rise": rise, "confused": rise > CONFUSION_RISE, "bright": bright, "cover_bright": cover}
 
 
 def budget_warnings(budgets, nsims: int) -> list[str]:

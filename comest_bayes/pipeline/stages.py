@@ -33,6 +33,7 @@ from comest_bayes.io.jsonio import dumps
 from comest_bayes.io import layout
 from comest_bayes.pipeline.preflight import SMALLEST_SEEING_PIX, budget_warnings, check_injection_count, check_memory, choose_densities, FEW_USABLE_INJECTIONS
 from comest_bayes.pipeline.preflight import BRIGHT_NEIGHBOUR_WARN, bright_neighbours, choose_density
+from comest_bayes.pipeline.preflight import CONFUSION_SPAN, confused_bright_end, footprint_cover
 from comest_bayes.detect.psf import injection_psf, measure_seeing, BAD_FLAGS, point_size_check, select_stars
 from comest_bayes.sourcefree import build_source_free, format_percent, judge_replacement
 from comest_bayes.pipeline.executors import TaskRunner, run_tasks
@@ -334,22 +335,22 @@ def _run_pipeline(options: ImageOptions, config: RunConfig, out_dir, *, log, com
     # how many injections per realization: the user's density, or chosen per kind from the image
     densities = choose_densities(shape=image.shape, pixel_scale=image.pixel_scale, fwhm_pix=float(fwhm["fwhm"]),
                                  injection=config.injection, back_size=config.detection.back_size)
-    # point sources of a range far brighter than the detection limit keep the brightest one's reach apart
-    sep = None
-    if "point" in config.injection.kinds and config.injection.min_sep <= 0 and config.injection.mag_range:
+    # the magnitude range: the user's, or from the depth (brighter on a confused field); a resumed run keeps its own
+    if run.stage_done("baseline"):
+        mag_range = tuple(run.stage_info("baseline")["mag_range"])
+        range_record = run.stage_info("baseline").get("range") or {"rule": "user" if config.injection.mag_range else "m5"}
+    else:
         if det is None:
             det = _load_detection(run, image)
-        sep = _bright_separation(config, image, det, psf_choice, densities.get("point"), float(fwhm["fwhm"]))
-    if sep is not None:
-        wide = choose_density("point", shape=image.shape, pixel_scale=image.pixel_scale, fwhm_pix=float(fwhm["fwhm"]),
-                              injection=replace(config.injection, min_sep=sep), back_size=config.detection.back_size)
-        densities["point"] = replace(wide, min_sep_arcsec=sep, sizing={
-            **(wide.sizing or {}), "separation": f"{sep:.3g}\" between all pairs: the reach of the range's "
-                                                 f"brightest injection (twice its detection isophote's radius)"},
-            reason=(
-            f"{wide.reason}; separation {sep:.3g}\" ({sep / image.pixel_scale:.1f} px) instead of 4 FWHM: the "
-            f"range's brightest injections reach that far above the detection threshold, and a fainter one "
-            f"nearer is lost in them (docs/injection.md)"))
+        mag_range, range_record = _injection_range(config, image, det, psf_choice, float(fwhm["fwhm"]))
+    # the injections of a range far brighter than the detection limit keep the brightest one's reach apart
+    if config.injection.min_sep <= 0 and range_record["rule"] != "m5":
+        if det is None:
+            det = _load_detection(run, image)
+        for kind, choice in list(densities.items()):
+            sep = _bright_separation(config, image, det, psf_choice, choice, float(fwhm["fwhm"]), mag_range)
+            if sep is not None:
+                densities[kind] = _separated_choice(kind, choice, sep, config, image, float(fwhm["fwhm"]))
     budgets = check_injection_count(shape=image.shape, mask=image.mask, pixel_scale=image.pixel_scale,
                                     fwhm_pix=float(fwhm["fwhm"]), injection=config.injection,
                                     fwhm_given=image.fwhm is not None, densities=densities)
@@ -401,8 +402,11 @@ def _run_pipeline(options: ImageOptions, config: RunConfig, out_dir, *, log, com
         + (f"; beta: {psf_choice['beta_source']}" if psf_choice.get("beta_source") else ""))
     for line in psf_choice["warnings"]:
         log(f"warning: psf: {line}")
-    # the injection density per kind, and why (the injection stage reads it back from run.json)
-    run.update(injection_density={kind: choice.to_dict() for kind, choice in densities.items()})
+    # the injection range and density per kind, and why (the injection stage reads them back from run.json)
+    run.update(injection_range={"mag_range": list(mag_range), **range_record},
+               injection_density={kind: choice.to_dict() for kind, choice in densities.items()})
+    if _range_line(mag_range, range_record):
+        log(_range_line(mag_range, range_record))
     for kind, choice in densities.items():
         log(f"density: {kind}: {choice.reason}")
         if choice.warning:
@@ -466,19 +470,57 @@ def _injection_psf_profile(config: RunConfig, image: ImageData, psf_choice: dict
                     pixel_integrated=bool(psf_choice.get("pixel_integrated", False)))
 
 
-def _psf_nea(config: RunConfig, image: ImageData, psf_choice: dict | None = None) -> float:
-    """Noise-equivalent area (pixels) of the injection PSF on the image's pixel grid."""
+def _psf_nea(config: RunConfig, image: ImageData, psf_choice: dict | None = None, fwhm: float | None = None) -> float:
+    """Noise-equivalent area (pixels) of the injection PSF on the image's pixel grid (``fwhm`` as
+    :func:`_injection_psf_profile` takes it)."""
 
-    psf = _injection_psf_profile(config, image, psf_choice)
+    psf = _injection_psf_profile(config, image, psf_choice, fwhm)
     return noise_equivalent_area(psf.drawImage(nx=64, ny=64, scale=image.pixel_scale, method="no_pixel").array)
 
 
-def _auto_mag_range(image: ImageData, det: DetectionResult, nea: float) -> tuple[float, float]:
-    """(m5 - 5, m5 + 1.5) around the 5-sigma point-source depth of the median noise."""
+def _auto_mag_range(image: ImageData, det: DetectionResult, nea: float) -> tuple[tuple[float, float], dict]:
+    """(m5 - 5, m5 + 1.5) around the 5-sigma point-source depth of the median noise, and how it was chosen.
+
+    On a confused field (the detected sources of the range's first 2 mag cover more than
+    ``CONFUSION_RISE`` of the image, :func:`confused_bright_end`) the range starts brighter, where the
+    sources brighter than it cover ``CONFUSION_COVER``: the completeness falls from far above m5 there,
+    and a range from m5 - 5 would never see its plateau.  The record holds ``rule`` ("m5" or
+    "confused"), ``m5``, ``confusion_rise`` and, when confused, ``usual_bright`` and ``cover_bright``.
+    """
 
     sigma = float(np.median(det.noise[~image.mask]))
     m5 = point_source_depth_nea(sigma, image.zeropoint, nea, 5.0)
-    return (round(m5 - 5.0, 2), round(m5 + 1.5, 2))
+    lo, hi = round(m5 - 5.0, 2), round(m5 + 1.5, 2)
+    record = {"rule": "m5", "m5": round(float(m5), 3)}
+    if det.segmentation is not None and len(det.catalog) and "mag_auto" in det.catalog.colnames:
+        mag, share = footprint_cover(det.segmentation, det.catalog["id"], det.catalog["mag_auto"], image.mask)
+        conf = confused_bright_end(mag, share, lo)
+        record["confusion_rise"] = round(conf["rise"], 4)
+        if conf["confused"]:
+            record.update(rule="confused", usual_bright=lo, cover_bright=round(conf["cover_bright"], 4))
+            lo = round(conf["bright"], 2)
+    return (lo, hi), record
+
+
+def _injection_range(config: RunConfig, image: ImageData, det: DetectionResult, psf_choice: dict | None,
+                     fwhm: float | None = None) -> tuple[tuple[float, float], dict]:
+    """The magnitude range of the injections and how it was chosen (``rule`` "user", "m5" or "confused");
+    ``fwhm`` (pixels) of the injection PSF, default ``image.fwhm``."""
+    if config.injection.mag_range:
+        return tuple(float(v) for v in config.injection.mag_range), {"rule": "user"}
+    return _auto_mag_range(image, det, _psf_nea(config, image, psf_choice, fwhm))
+
+
+def _range_line(mag_range, record: dict) -> str | None:
+    """The log line of a confused field's range (None for the other rules)."""
+    if record.get("rule") != "confused":
+        return None
+    return (f"range: a confused field: the sources detected at {record['usual_bright']:.2f}-"
+            f"{record['usual_bright'] + CONFUSION_SPAN:.2f} mag (m5 - 5 and the next {CONFUSION_SPAN:g} mag) cover "
+            f"{100 * record['confusion_rise']:.1f}% of the image, so injections there land on sources as bright as "
+            f"themselves and the completeness falls from the first magnitude; the injections start at "
+            f"{mag_range[0]:.2f} mag instead, where brighter sources cover {100 * record['cover_bright']:.0f}% "
+            f"(docs/injection.md; set injection.mag_range to choose)")
 
 
 def _isophote_radii(config: RunConfig, image: ImageData, det: DetectionResult, psf_choice: dict | None,
@@ -504,21 +546,37 @@ def _isophote_radii(config: RunConfig, image: ImageData, det: DetectionResult, p
 
 
 def _bright_separation(config: RunConfig, image: ImageData, det: DetectionResult, psf_choice: dict | None,
-                       choice, fwhm: float) -> float | None:
-    """The point sources' separation (arcsec) for a range far brighter than the detection limit, or None.
+                       choice, fwhm: float, mag_range) -> float | None:
+    """A kind's separation (arcsec) for a range far brighter than the detection limit, or None.
 
     The caller asks only for an automatic separation (``injection.min_sep = 0``) and a range the
-    user set (the automatic range, from m5 - 5, puts about 0.01% of the injections within a
-    brighter one's reach): when more than ``BRIGHT_NEIGHBOUR_WARN`` of them would be, the
-    separation becomes the reach of the brightest injection.
+    user set or a confused field's (the usual automatic range, from m5 - 5, puts about 0.01% of the
+    injections within a brighter one's reach): when more than ``BRIGHT_NEIGHBOUR_WARN`` of them
+    would be, the separation becomes the reach of the brightest injection, as a point source.  For
+    the sized kinds that reach is an estimate (a bright galaxy's isophote is usually the larger),
+    and their separation never falls below their largest pair's (``choice.min_sep_pix``).
     """
     if choice is None:
         return None
-    rec = bright_neighbours(config.injection.mag_range, choice.per_realization, float((~image.mask).sum()),
+    rec = bright_neighbours(mag_range, choice.per_realization, float((~image.mask).sum()),
                             choice.min_sep_pix, _isophote_radii(config, image, det, psf_choice, fwhm))
     if rec["fraction"] <= BRIGHT_NEIGHBOUR_WARN:
         return None
-    return round(rec["reach_bright"] * image.pixel_scale, 4)
+    # galaxies: the point source's reach estimates theirs; never closer than their largest pair was
+    return round(max(rec["reach_bright"], choice.min_sep_pix) * image.pixel_scale, 4)
+
+
+def _separated_choice(kind: str, choice, sep: float, config: RunConfig, image: ImageData, fwhm: float):
+    """The density choice of ``kind`` with every pair kept ``sep`` arcsec apart (:func:`_bright_separation`)."""
+    wide = choose_density(kind, shape=image.shape, pixel_scale=image.pixel_scale, fwhm_pix=fwhm,
+                          injection=replace(config.injection, min_sep=sep), back_size=config.detection.back_size)
+    usual = "4 FWHM" if kind == "point" else "each pair's size-based separation"
+    return replace(wide, min_sep_arcsec=sep, sizing={
+        **(wide.sizing or {}), "separation": f"{sep:.3g}\" between all pairs: the reach of the range's brightest "
+                                             f"point source (twice its detection isophote's radius)"},
+        reason=(f"{wide.reason}; separation {sep:.3g}\" ({sep / image.pixel_scale:.1f} px) instead of {usual}: the "
+                f"range's brightest injections reach that far above the detection threshold, and a fainter one "
+                f"nearer is lost in them (docs/injection.md)"))
 
 
 def _bright_neighbour_check(config: RunConfig, image: ImageData, det: DetectionResult, psf_choice: dict | None,
@@ -572,11 +630,15 @@ def _injection_stages(run: RunDirectory, image: ImageData, det: DetectionResult,
                                        threshold_background=det.background if observed_back else None)
         files = [run.write_table(layout.BASELINE, set_image_units(bdet.catalog, image.bunit)),
                  run.write_image(layout.MASK, image.mask.astype(np.uint8), header)]
-        mag_range = tuple(inj.mag_range) if inj.mag_range else _auto_mag_range(image, det, _psf_nea(config, image, psf_choice))
+        chosen = run.state.get("injection_range") or {}
+        if chosen.get("mag_range"):
+            mag_range, range_record = tuple(chosen["mag_range"]), {k: v for k, v in chosen.items() if k != "mag_range"}
+        else:
+            mag_range, range_record = _injection_range(config, image, det, psf_choice)
         reach, reach_warning = _bright_neighbour_check(config, image, det, psf_choice, mag_range,
                                                        (run.state.get("injection_density") or {}).get("point"))
         run.record_stage("baseline", files=files, seconds=time.perf_counter() - t0, nsources=len(bdet.catalog),
-                         mag_range=list(mag_range), base=base_name, reused_detection=reused,
+                         mag_range=list(mag_range), range=range_record, base=base_name, reused_detection=reused,
                          bright_neighbours=None if reach is None else {**reach, "warning": reach_warning})
         log(f"baseline: {len(bdet.catalog)} sources detected on the bare {base_name} "
             + ("(the first detection's, on the same pixels and noise) " if reused else "")
@@ -688,9 +750,9 @@ def _injection_stages(run: RunDirectory, image: ImageData, det: DetectionResult,
                     f"{bright['ratio']:.0%} complete ({bright['k']}/{bright['n']}): the injected range starts inside "
                     "the transition (crowding or blending can make the completeness fall far brighter than the "
                     "5-sigma depth), so the bright plateau was never measured and the models' plateau and bright side "
-                    "are their priors' extrapolation; inject brighter (--set injection.mag_range=[BRIGHT,FAINT]; point "
-                    "sources are then kept further apart by the run, galaxies need a larger injection.min_sep: their "
-                    "light reaches their neighbours, docs/bayesian.md, Stability)")
+                    "are their priors' extrapolation; inject brighter (--set injection.mag_range=[BRIGHT,FAINT]; the "
+                    "run then keeps the injections further apart, as their light reaches their neighbours, "
+                    "docs/injection.md)")
             kinds[kind]["bright_end"] = {**bright, "warning": text}
             log(f"warning: ratios: {kind}: {text}")
     timings["ratios"] = round(time.perf_counter() - t0, 3)

@@ -209,3 +209,61 @@ def test_bright_neighbours_counts_the_injections_within_a_brighter_ones_reach():
     # nothing reaches past the separation: no neighbour at risk
     quiet = bright_neighbours((20.0, 24.0), 100.0, 1e6, 12.0, lambda m: np.full(np.shape(m), 5.0))
     assert quiet["fraction"] == 0.0 and quiet["mag_reach"] is None
+
+
+def _footprints(mags, sizes, shape=(100, 100)):
+    """A segmentation whose source i (id i + 1) covers the next sizes[i] pixels in reading order."""
+    seg = np.zeros(shape, np.int32)
+    flat = seg.ravel()
+    start = 0
+    for i, n in enumerate(sizes):
+        flat[start:start + n] = i + 1
+        start += n
+    return seg, np.arange(1, len(mags) + 1), np.asarray(mags, float)
+
+
+def test_footprint_cover_gives_each_sources_share_of_the_unmasked_area_by_magnitude():
+    from comest_bayes.pipeline.preflight import footprint_cover
+
+    seg, ids, mags = _footprints([12.0, 10.0, np.nan, 11.0], [100, 400, 50, 250])
+    mag, share = footprint_cover(seg, ids, mags)
+    # sorted by magnitude, the NaN-magnitude source left out; 10^4 pixels
+    assert mag.tolist() == [10.0, 11.0, 12.0]
+    assert share.tolist() == pytest.approx([0.04, 0.025, 0.01])
+    # a mask removes its pixels from both the footprints and the area: the first 200 pixels (source 1's
+    # 100 and half of source 2's) are masked, 9800 remain
+    mask = np.zeros(seg.shape, bool)
+    mask.ravel()[:200] = True
+    mag, share = footprint_cover(seg, ids, mags, mask)
+    assert share.tolist() == pytest.approx([300 / 9800, 250 / 9800, 0.0])
+    # nothing detected, or everything masked: nothing covered
+    assert footprint_cover(np.zeros((5, 5), int), [], [])[0].size == 0
+    assert footprint_cover(seg, ids, mags, np.ones(seg.shape, bool))[1].size == 0
+
+
+def test_a_field_is_confused_when_the_sources_of_the_ranges_first_two_magnitudes_cover_five_percent():
+    from comest_bayes.pipeline.preflight import (CONFUSION_COVER, CONFUSION_MAX_SHIFT, CONFUSION_RISE,
+                                                 CONFUSION_SPAN, confused_bright_end)
+
+    assert (CONFUSION_SPAN, CONFUSION_RISE, CONFUSION_COVER, CONFUSION_MAX_SHIFT) == (2.0, 0.05, 0.05, 5.0)
+    # sources every 0.1 mag from 10 to 20, each covering 0.2% of the image: 2% per magnitude
+    mag = np.round(np.arange(10.0, 20.0, 0.1), 6)
+    share = np.full(mag.size, 0.002)
+    # the first 2 mag of a range from 16 hold 20 sources: 4% covered, not confused
+    quiet = confused_bright_end(mag, share, 16.0)
+    assert quiet["rise"] == pytest.approx(0.04) and not quiet["confused"] and quiet["bright"] == 16.0
+    assert quiet["cover_bright"] == pytest.approx(0.12)  # the 60 sources of 10.0-15.9
+    # twice the share each: 8% covered in the first 2 mag, confused
+    dense = confused_bright_end(mag, 2 * share, 16.0)
+    assert dense["rise"] == pytest.approx(0.08) and dense["confused"]
+    # cumulative cover 0.004 k after k sources: past 0.05 at k = 13, the source at 11.2 mag
+    assert dense["bright"] == pytest.approx(11.2)
+    assert dense["cover_bright"] == pytest.approx(0.048)  # the 12 sources of 10.0-11.1
+    # a very dense field: the cover passes 5% at 10.2 mag, but the start is held to CONFUSION_MAX_SHIFT = 5 mag
+    # above the usual bright end of 18
+    held = confused_bright_end(mag, 10 * share, 18.0)
+    assert held["confused"] and held["bright"] == pytest.approx(13.0)
+    # covered everywhere by far brighter sources but nothing in the range's first 2 mag (one large galaxy):
+    # not confused, the range is kept
+    galaxy = confused_bright_end(np.array([12.0, 18.5]), np.array([0.25, 0.001]), 18.0)
+    assert not galaxy["confused"] and galaxy["bright"] == 18.0
