@@ -405,8 +405,8 @@ def _run_pipeline(options: ImageOptions, config: RunConfig, out_dir, *, log, com
     # the injection range and density per kind, and why (the injection stage reads them back from run.json)
     run.update(injection_range={"mag_range": list(mag_range), **range_record},
                injection_density={kind: choice.to_dict() for kind, choice in densities.items()})
-    if _range_line(mag_range, range_record):
-        log(_range_line(mag_range, range_record))
+    if range_record.get("rule") == "confused":
+        log(f"range: {range_record['reason']}")
     for kind, choice in densities.items():
         log(f"density: {kind}: {choice.reason}")
         if choice.warning:
@@ -507,15 +507,17 @@ def _injection_range(config: RunConfig, image: ImageData, det: DetectionResult, 
     """The magnitude range of the injections and how it was chosen (``rule`` "user", "m5" or "confused");
     ``fwhm`` (pixels) of the injection PSF, default ``image.fwhm``."""
     if config.injection.mag_range:
-        return tuple(float(v) for v in config.injection.mag_range), {"rule": "user"}
-    return _auto_mag_range(image, det, _psf_nea(config, image, psf_choice, fwhm))
+        return tuple(float(v) for v in config.injection.mag_range), {"rule": "user", "reason": "injection.mag_range as set"}
+    mag_range, record = _auto_mag_range(image, det, _psf_nea(config, image, psf_choice, fwhm))
+    record["reason"] = _range_reason(mag_range, record)
+    return mag_range, record
 
 
-def _range_line(mag_range, record: dict) -> str | None:
-    """The log line of a confused field's range (None for the other rules)."""
+def _range_reason(mag_range, record: dict) -> str:
+    """Why the automatic range is what it is (for a confused field, the text of its log line)."""
     if record.get("rule") != "confused":
-        return None
-    return (f"range: a confused field: the sources detected at {record['usual_bright']:.2f}-"
+        return f"m5 - 5 to m5 + 1.5 around the 5-sigma point-source depth m5 = {record['m5']:.2f} of the injection PSF"
+    return (f"a confused field: the sources detected at {record['usual_bright']:.2f}-"
             f"{record['usual_bright'] + CONFUSION_SPAN:.2f} mag (m5 - 5 and the next {CONFUSION_SPAN:g} mag) cover "
             f"{100 * record['confusion_rise']:.1f}% of the image, so injections there land on sources as bright as "
             f"themselves and the completeness falls from the first magnitude; the injections start at "

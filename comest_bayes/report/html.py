@@ -276,6 +276,10 @@ def _facts_section(r: _Report) -> None:
     elif check:
         rows.append(["point-source size check", "not enough sources",
                      f"{check['ninjected']} detected point-source injections, {check['nstars']} stars"])
+    rng = run.state.get("injection_range") or {}
+    if rng.get("mag_range"):
+        rows.append(["injected magnitudes", f"{rng['mag_range'][0]:.2f} to {rng['mag_range'][1]:.2f}",
+                     rng.get("reason", "")])
     for kind, choice in (run.state.get("injection_density") or {}).items():
         rows.append([f"injections ({kind})",
                      f"{choice.get('density', float('nan')):.3g} per arcmin^2, "

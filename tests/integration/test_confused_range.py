@@ -72,6 +72,15 @@ def test_a_confused_field_starts_its_range_brighter_and_keeps_its_injections_apa
     galaxies = Table.read(out / "catalogs" / "buldisk_injected.fits")
     assert _closest_pair(galaxies) >= dens["buldisk"]["min_sep_arcsec"] / 0.5 - 1e-6
 
+    # the report's table of decisions says it, with the log line's reason
+    from html import escape
+
+    from comest_bayes.report.html import write_report
+
+    assert rec["reason"].startswith("a confused field: the sources detected at")
+    assert f"range: {rec['reason']}" in log
+    html = write_report(out).read_text()
+    assert "injected magnitudes" in html and escape(rec["reason"]) in html
     # `info` says where the range came from
     assert main(["info", str(out)]) == 0
     assert (f"injected magnitudes: {lo:.2f}-{hi:.2f} (automatic, a confused field: from where brighter sources "
@@ -91,6 +100,7 @@ def test_a_sparse_star_field_keeps_the_range_from_m5(tmp_path, capsys):
     assert rec["rule"] == "m5" and rec["confusion_rise"] < 0.1 * CONFUSION_RISE
     assert rec["mag_range"] == [pytest.approx(round(rec["m5"] - 5.0, 2)), pytest.approx(round(rec["m5"] + 1.5, 2))]
     assert "range: a confused field" not in log
+    assert rec["reason"] == f"m5 - 5 to m5 + 1.5 around the 5-sigma point-source depth m5 = {rec['m5']:.2f} of the injection PSF"
     assert state["injection_density"]["point"].get("min_sep_arcsec") is None  # 4 FWHM kept
     assert main(["info", str(out)]) == 0
     lo, hi = rec["mag_range"]
@@ -100,7 +110,7 @@ def test_a_sparse_star_field_keeps_the_range_from_m5(tmp_path, capsys):
 def test_a_range_the_user_sets_is_kept_on_a_confused_field(tmp_path, capsys):
     image, _ = _field(tmp_path, 300.0)
     log, _, rec = _ran(image, tmp_path / "user", capsys, "--kinds", "point", "--set", "injection.mag_range=[19.5,24.5]")
-    assert rec == {"mag_range": [19.5, 24.5], "rule": "user"}
+    assert rec == {"mag_range": [19.5, 24.5], "rule": "user", "reason": "injection.mag_range as set"}
     assert "range: a confused field" not in log and "injections span 19.50-24.50 mag" in log
     assert main(["info", str(tmp_path / "user")]) == 0
     assert "injected magnitudes: 19.50-24.50 (as set)" in capsys.readouterr().out
