@@ -9,7 +9,7 @@ from __future__ import annotations
 
 __all__ = [
     "RUN", "LOCK", "SUMMARY", "REPORT", "DETECTION", "SEGMENTATION", "BACKGROUND", "RMS", "NOISE", "MASK",
-    "BASELINE", "SFI", "BNB", "OBSERVED", "BASE_IMAGES", "CATALOGS", "CATALOG_DIR", "POSTERIOR_DIR", "MAPS_DIR",
+    "BASELINE", "BASELINE_SEGMENTATION", "SFI", "BNB", "OBSERVED", "BASE_IMAGES", "CATALOGS", "CATALOG_DIR", "POSTERIOR_DIR", "MAPS_DIR",
     "SIMS_DIR", "DESIGNS_DIR", "FIGURES_DIR", "LF_DIR", "INPUTS_DIR",
     "catalog", "posterior", "binned_maps", "m50_map", "realization", "realization_image", "realization_glob", "design", "figure",
     "lf_dir", "LF_POSTERIOR", "LF_JSON",
@@ -33,6 +33,9 @@ NOISE = "noise.fits"
 MASK = "mask.fits"
 #: Detection on the image the injections go onto (the baseline that false detections are judged against).
 BASELINE = "baseline.fits"
+#: Its segmentation, when the injections go onto the observed image and the baseline is not the first
+#: detection itself (which is ``SEGMENTATION``).
+BASELINE_SEGMENTATION = "baseline_segmentation.fits"
 
 # --- the images injections go onto
 SFI = "sfi.fits"

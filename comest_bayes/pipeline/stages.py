@@ -632,6 +632,14 @@ def _injection_stages(run: RunDirectory, image: ImageData, det: DetectionResult,
                                        threshold_background=det.background if observed_back else None)
         files = [run.write_table(layout.BASELINE, set_image_units(bdet.catalog, image.bunit)),
                  run.write_image(layout.MASK, image.mask.astype(np.uint8), header)]
+        # On the observed image the baseline holds every real source, and on a crowded one the re-detection of
+        # a realization splits, merges and shifts their blends: an unmatched detection whose centre lies in a
+        # baseline source's footprint is that source, not a false detection (docs/injection.md).
+        footprints = None
+        if inj.on == "observed":
+            footprints = layout.SEGMENTATION if reused else layout.BASELINE_SEGMENTATION
+            if not reused:
+                files.append(run.write_image(layout.BASELINE_SEGMENTATION, bdet.segmentation.astype(np.int32), header))
         chosen = run.state.get("injection_range") or {}
         if chosen.get("mag_range"):
             mag_range, range_record = tuple(chosen["mag_range"]), {k: v for k, v in chosen.items() if k != "mag_range"}
@@ -641,6 +649,7 @@ def _injection_stages(run: RunDirectory, image: ImageData, det: DetectionResult,
                                                        (run.state.get("injection_density") or {}).get("point"))
         run.record_stage("baseline", files=files, seconds=time.perf_counter() - t0, nsources=len(bdet.catalog),
                          mag_range=list(mag_range), range=range_record, base=base_name, reused_detection=reused,
+                         preexisting_footprints=footprints,
                          bright_neighbours=None if reach is None else {**reach, "warning": reach_warning})
         log(f"baseline: {len(bdet.catalog)} sources detected on the bare {base_name} "
             + ("(the first detection's, on the same pixels and noise) " if reused else "")
@@ -660,7 +669,9 @@ def _injection_stages(run: RunDirectory, image: ImageData, det: DetectionResult,
         image_dir=str(run.file(layout.SIMS_DIR)) if inj.write_images else None,
         psf_beta=float(psf_choice.get("beta") or 0.0),
         psf_pixel_integrated=bool(psf_choice.get("pixel_integrated", False)),
-        background_path=str(run.file(layout.BACKGROUND)))
+        background_path=str(run.file(layout.BACKGROUND)),
+        baseline_segmentation_path=str(run.file(run.stage_info("baseline")["preexisting_footprints"]))
+        if run.stage_info("baseline").get("preexisting_footprints") else "")
     ctx = _contexts_by_kind(ctx, run.state.get("injection_density") or {})
 
     sims = run.file(layout.SIMS_DIR)

@@ -91,6 +91,9 @@ class SimContext:
     psf_pixel_integrated: bool = False
     #: The observed detection's background map (``detection.background_level = "observed"``).
     background_path: str = ""
+    #: Segmentation of the baseline detection; when given, a detection whose centre lies in a baseline
+    #: source's footprint is pre-existing too (injections on the observed image: docs/injection.md).
+    baseline_segmentation_path: str = ""
 
     @property
     def wcs(self):
@@ -217,6 +220,15 @@ def _background_cached(key: tuple) -> np.ndarray:
     return fits.getdata(key[0]).astype(np.float32)
 
 
+def _segmentation(path: str) -> np.ndarray:
+    return _segmentation_cached(_file_key(path))
+
+
+@functools.lru_cache(maxsize=1)
+def _segmentation_cached(key: tuple) -> np.ndarray:
+    return fits.getdata(key[0]).astype(np.int32)
+
+
 def run_realization(task: RealizationTask) -> RealizationResult:
     """Inject, re-detect and match one realization (runs in a worker).
 
@@ -264,19 +276,24 @@ def _run_realization(task: RealizationTask) -> RealizationResult:
     det = _detect(image, mask, noise, ctx)
     t3 = time.perf_counter()
     del image
-    truth, dets = match_realization(truth, det.catalog, _table(ctx.baseline_path), noise, ctx)
+    kept = _segmentation(ctx.baseline_segmentation_path) if ctx.baseline_segmentation_path else None
+    truth, dets = match_realization(truth, det.catalog, _table(ctx.baseline_path), noise, ctx, kept_segmentation=kept)
     truth["realization"] = np.full(len(truth), index, dtype=np.int32)
     dets["realization"] = np.full(len(dets), index, dtype=np.int32)
     seconds.update(detect=t3 - t2, match=time.perf_counter() - t3, cpu=time.process_time() - c0)
     return RealizationResult(kind, index, truth, dets, seconds=seconds)
 
 
-def match_realization(truth: Table, catalog: Table, baseline: Table, noise: np.ndarray, ctx: SimContext):
+def match_realization(truth: Table, catalog: Table, baseline: Table, noise: np.ndarray, ctx: SimContext,
+                      kept_segmentation: np.ndarray | None = None):
     """Attach outcome columns to the truth and class columns to the detections.
 
     Returns the truth (with ``usable``, ``detected``, ``separation``,
     ``noise`` and the ``det_*`` measured columns) and the detection catalog
     (with ``matched``, ``injection_id``, ``preexisting``, ``near_unusable`` and ``false``).
+    An unmatched detection is pre-existing when it lies within the matching radius of a
+    ``baseline`` source or, with ``kept_segmentation`` (the baseline detection's segmentation),
+    when its centre pixel lies in a baseline source's footprint.
     """
     radius = ctx.matching.radius_fwhm * ctx.fwhm
     magcol = ctx.matching.mag_column
@@ -290,7 +307,8 @@ def match_realization(truth: Table, catalog: Table, baseline: Table, noise: np.n
                            np.asarray(catalog["ywin"], float), det_mag, radius=radius, mag_tol=ctx.matching.mag_tol)
     dx, dy = np.asarray(catalog["xwin"], float), np.asarray(catalog["ywin"], float)
     cls = classify_detections(dx, dy, res.det_matched, kept_x=np.asarray(baseline["xwin"], float),
-                              kept_y=np.asarray(baseline["ywin"], float), radius=radius)
+                              kept_y=np.asarray(baseline["ywin"], float), kept_segmentation=kept_segmentation,
+                              radius=radius)
     flag = np.asarray(truth["flag"], dtype=np.int64)
     usable = ~np.asarray(truth["masked"], bool) & (flag == 0)
     # Light of an unusable injection (centre masked, stamp cut by the border) can still be detected,

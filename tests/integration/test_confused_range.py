@@ -114,3 +114,39 @@ def test_a_range_the_user_sets_is_kept_on_a_confused_field(tmp_path, capsys):
     assert "range: a confused field" not in log and "injections span 19.50-24.50 mag" in log
     assert main(["info", str(tmp_path / "user")]) == 0
     assert "injected magnitudes: 19.50-24.50 (as set)" in capsys.readouterr().out
+
+
+@pytest.mark.parametrize("extra, footprints", [((), "segmentation.fits"),
+                                               (("--set", "detection.background_level=observed"),
+                                                "baseline_segmentation.fits")])
+def test_on_the_observed_image_a_detection_in_a_real_sources_footprint_is_that_source(tmp_path, extra, footprints):
+    # A realization's re-detection of a crowded field splits, merges and shifts the blends of its real sources
+    # by more than the matching radius (1 FWHM): those detections are the real sources, not false ones.
+    from astropy.io import fits
+
+    image, _ = _field(tmp_path, 300.0)
+    out = tmp_path / "observed"
+    assert _run(image, out, "--kinds", "point", "--nsims", "2", *extra) == 0
+    state = json.loads((out / "run.json").read_text())
+    # the first detection is the baseline when nothing differs; with the observed background map the baseline is
+    # detected again and its own segmentation kept
+    assert state["stages"]["baseline"]["preexisting_footprints"] == footprints
+    seg = fits.getdata(out / footprints)
+    dets = Table.read(out / "sims" / "point" / sorted(p.name for p in (out / "sims" / "point").iterdir())[0],
+                      "DETECTIONS")
+    ix = np.floor(np.asarray(dets["xwin"], float) + 0.5).astype(int)
+    iy = np.floor(np.asarray(dets["ywin"], float) + 0.5).astype(int)
+    inside = seg[np.clip(iy, 0, seg.shape[0] - 1), np.clip(ix, 0, seg.shape[1] - 1)] > 0
+    unmatched = ~np.asarray(dets["matched"], bool)
+    preexisting, false = np.asarray(dets["preexisting"], bool), np.asarray(dets["false"], bool)
+    # every unmatched detection centred in a real source's footprint is pre-existing, none of them false; some of
+    # these lie beyond the matching radius of any real source's position (the ones this rule adds)
+    assert (unmatched & inside).sum() >= 20
+    assert preexisting[unmatched & inside].all() and not false[inside].any()
+    base = Table.read(out / "baseline.fits")
+    from scipy.spatial import cKDTree
+
+    dist, _ = cKDTree(np.column_stack([base["xwin"], base["ywin"]])).query(np.column_stack([dets["xwin"], dets["ywin"]]))
+    assert (unmatched & inside & (dist > 3.0)).sum() >= 1
+    # outside every footprint and far from every real source, an unmatched detection stays false
+    assert not preexisting[unmatched & ~inside & (dist > 3.0)].any()
