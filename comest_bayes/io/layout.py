@@ -9,7 +9,8 @@ from __future__ import annotations
 
 __all__ = [
     "RUN", "LOCK", "SUMMARY", "REPORT", "DETECTION", "SEGMENTATION", "BACKGROUND", "RMS", "NOISE", "MASK",
-    "BASELINE", "BASELINE_SEGMENTATION", "SFI", "BNB", "OBSERVED", "BASE_IMAGES", "CATALOGS", "CATALOG_DIR", "POSTERIOR_DIR", "MAPS_DIR",
+    "BASELINE", "BASELINE_SEGMENTATION", "SFI", "BNB", "OBSERVED", "BASE_IMAGES", "CATALOGS", "CATALOG_DIR",
+    "POSTERIOR_DIR", "MAPS_DIR",
     "SIMS_DIR", "DESIGNS_DIR", "FIGURES_DIR", "LF_DIR", "INPUTS_DIR",
     "catalog", "posterior", "binned_maps", "m50_map", "realization", "realization_image", "realization_glob", "design", "figure",
     "lf_dir", "LF_POSTERIOR", "LF_JSON",

@@ -338,7 +338,8 @@ def _run_pipeline(options: ImageOptions, config: RunConfig, out_dir, *, log, com
     # the magnitude range: the user's, or from the depth (brighter on a confused field); a resumed run keeps its own
     if run.stage_done("baseline"):
         mag_range = tuple(run.stage_info("baseline")["mag_range"])
-        range_record = run.stage_info("baseline").get("range") or {"rule": "user" if config.injection.mag_range else "m5"}
+        range_record = (run.stage_info("baseline").get("range")
+                        or {"rule": "user" if config.injection.mag_range else "m5"})
     else:
         if det is None:
             det = _load_detection(run, image)
@@ -507,7 +508,8 @@ def _injection_range(config: RunConfig, image: ImageData, det: DetectionResult, 
     """The magnitude range of the injections and how it was chosen (``rule`` "user", "m5" or "confused");
     ``fwhm`` (pixels) of the injection PSF, default ``image.fwhm``."""
     if config.injection.mag_range:
-        return tuple(float(v) for v in config.injection.mag_range), {"rule": "user", "reason": "injection.mag_range as set"}
+        return (tuple(float(v) for v in config.injection.mag_range),
+                {"rule": "user", "reason": "injection.mag_range as set"})
     mag_range, record = _auto_mag_range(image, det, _psf_nea(config, image, psf_choice, fwhm))
     record["reason"] = _range_reason(mag_range, record)
     return mag_range, record
