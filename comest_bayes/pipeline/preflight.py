@@ -25,7 +25,8 @@ from comest_bayes.seeding import rng_for
 __all__ = ["MIN_USABLE_INJECTIONS", "FEW_USABLE_INJECTIONS", "SMALLEST_SEEING_PIX", "PUBLISHED_DENSITY",
            "TARGET_PER_REALIZATION", "PER_BACKGROUND_MESH", "MAX_PER_BACKGROUND_MESH", "HOLD_FRACTION",
            "BRIGHT_REACH", "BRIGHT_NEIGHBOUR_WARN", "bright_neighbours", "CONFUSION_SPAN", "CONFUSION_RISE",
-           "CONFUSION_COVER", "CONFUSION_MAX_SHIFT", "footprint_cover", "confused_bright_end", "DensityChoice", "choose_density",
+           "CONFUSION_COVER", "CONFUSION_MAX_SHIFT", "footprint_cover", "confused_bright_end", "DensityChoice",
+           "choose_density",
            "choose_densities", "InjectionBudget", "stamp_half_size", "injection_budget", "check_injection_count",
            "budget_warnings", "injection_memory", "available_memory", "check_memory"]
 

@@ -348,8 +348,9 @@ def _run_pipeline(options: ImageOptions, config: RunConfig, out_dir, *, log, com
     if config.injection.min_sep <= 0 and range_record["rule"] != "m5":
         if det is None:
             det = _load_detection(run, image)
+        radius_at = _isophote_radii(config, image, det, psf_choice, float(fwhm["fwhm"]))
         for kind, choice in list(densities.items()):
-            sep = _bright_separation(config, image, det, psf_choice, choice, float(fwhm["fwhm"]), mag_range)
+            sep = _bright_separation(image, choice, mag_range, radius_at)
             if sep is not None:
                 densities[kind] = _separated_choice(kind, choice, sep, config, image, float(fwhm["fwhm"]))
     budgets = check_injection_count(shape=image.shape, mask=image.mask, pixel_scale=image.pixel_scale,
@@ -504,9 +505,9 @@ def _auto_mag_range(image: ImageData, det: DetectionResult, nea: float) -> tuple
 
 
 def _injection_range(config: RunConfig, image: ImageData, det: DetectionResult, psf_choice: dict | None,
-                     fwhm: float | None = None) -> tuple[tuple[float, float], dict]:
+                     fwhm: float) -> tuple[tuple[float, float], dict]:
     """The magnitude range of the injections and how it was chosen (``rule`` "user", "m5" or "confused");
-    ``fwhm`` (pixels) of the injection PSF, default ``image.fwhm``."""
+    ``fwhm`` (pixels) of the injection PSF (measured before ``image.fwhm`` is set)."""
     if config.injection.mag_range:
         return (tuple(float(v) for v in config.injection.mag_range),
                 {"rule": "user", "reason": "injection.mag_range as set"})
@@ -549,9 +550,10 @@ def _isophote_radii(config: RunConfig, image: ImageData, det: DetectionResult, p
     return radius_at
 
 
-def _bright_separation(config: RunConfig, image: ImageData, det: DetectionResult, psf_choice: dict | None,
-                       choice, fwhm: float, mag_range) -> float | None:
+def _bright_separation(image: ImageData, choice, mag_range, radius_at) -> float | None:
     """A kind's separation (arcsec) for a range far brighter than the detection limit, or None.
+
+    ``radius_at``: the point injections' detection isophote radii (:func:`_isophote_radii`).
 
     The caller asks only for an automatic separation (``injection.min_sep = 0``) and a range the
     user set or a confused field's (the usual automatic range, from m5 - 5, puts about 0.01% of the
@@ -560,10 +562,8 @@ def _bright_separation(config: RunConfig, image: ImageData, det: DetectionResult
     the sized kinds that reach is an estimate (a bright galaxy's isophote is usually the larger),
     and their separation never falls below their largest pair's (``choice.min_sep_pix``).
     """
-    if choice is None:
-        return None
-    rec = bright_neighbours(mag_range, choice.per_realization, float((~image.mask).sum()),
-                            choice.min_sep_pix, _isophote_radii(config, image, det, psf_choice, fwhm))
+    rec = bright_neighbours(mag_range, choice.per_realization, float((~image.mask).sum()), choice.min_sep_pix,
+                            radius_at)
     if rec["fraction"] <= BRIGHT_NEIGHBOUR_WARN:
         return None
     # galaxies: the point source's reach estimates theirs; never closer than their largest pair was
@@ -642,11 +642,9 @@ def _injection_stages(run: RunDirectory, image: ImageData, det: DetectionResult,
             footprints = layout.SEGMENTATION if reused else layout.BASELINE_SEGMENTATION
             if not reused:
                 files.append(run.write_image(layout.BASELINE_SEGMENTATION, bdet.segmentation.astype(np.int32), header))
-        chosen = run.state.get("injection_range") or {}
-        if chosen.get("mag_range"):
-            mag_range, range_record = tuple(chosen["mag_range"]), {k: v for k, v in chosen.items() if k != "mag_range"}
-        else:
-            mag_range, range_record = _injection_range(config, image, det, psf_choice)
+        # the range the run chose before its first byte (_run_pipeline records it at every start)
+        range_record = dict(run.state["injection_range"])
+        mag_range = tuple(range_record.pop("mag_range"))
         reach, reach_warning = _bright_neighbour_check(config, image, det, psf_choice, mag_range,
                                                        (run.state.get("injection_density") or {}).get("point"))
         run.record_stage("baseline", files=files, seconds=time.perf_counter() - t0, nsources=len(bdet.catalog),
