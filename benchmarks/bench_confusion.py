@@ -11,6 +11,10 @@ Two parts:
 
 * ``--images``: the shared real images (../shared/data), each run through detection with one point
   realization (``--model none``); prints the confusion share each gets and the range chosen.
+* ``--galaxies``: demo tiles (``comest_bayes.sim.demo``, 1000 x 1000, 0.26"/px, 0.9" Moffat seeing)
+  whose galaxy counts are multiplied by ``GALAXY_DENSITIES``; point sources and bulge+disk galaxies
+  injected on the observed image, with the automatic range and, on a confused field, the usual one.
+  Prints, per kind, the completeness of the brightest 0.5 mag of each range and the binned m50.
 * ``--stars``: synthetic star fields (768 x 768, 0.5"/px, Gaussian PSF of 3 px FWHM, white noise, counts
   rising as 10^(0.3 m) up to m5 + 2) at several densities.  Each is run with the automatic range and,
   when that is a confused field's, once more with the usual range (m5 - 5 to m5 + 1.5); point sources,
@@ -19,7 +23,8 @@ Two parts:
 
     python benchmarks/bench_confusion.py --work /tmp/confusion --images --stars [--out FILE]
 
-Run directories resume.  Both parts take about 15 minutes on two cores.
+Run directories resume.  ``--images`` and ``--stars`` take about 15 minutes on two cores,
+``--galaxies`` about as long.
 """
 
 from __future__ import annotations
@@ -46,6 +51,9 @@ SIZE, SCALE, FWHM, SIGMA, ZP = 768, 0.5, 3.0, 10.0, 30.0
 #: Stars per arcmin^2 brighter than m5, one synthetic field each.
 DENSITIES = (3.0, 10.0, 30.0, 100.0, 300.0, 1000.0)
 SLOPE = 0.3  # d log10 N / dm of the star counts
+#: Multipliers of the demo tile's galaxy counts (1 = about 29 galaxies per arcmin^2 to m5 + 2).
+GALAXY_DENSITIES = (1.0, 3.0, 10.0, 30.0)
+GALAXY_TILE = 1000
 
 
 def _run(args: list[str]) -> None:
@@ -65,13 +73,13 @@ def write_star_field(path: Path, density: float, seed: int) -> float:
     return facts["m5"]
 
 
-def bright_end(run: Path, width: float = 0.5) -> tuple[float, int, float]:
+def bright_end(run: Path, width: float = 0.5, kind: str = "point") -> tuple[float, int, float]:
     """(completeness of the brightest ``width`` mag of injections, their number, binned m50) of a run."""
-    t = Table.read(run / "catalogs" / "point_outcomes.fits")
+    t = Table.read(run / "catalogs" / f"{kind}_outcomes.fits")
     mag, det = np.asarray(t["mag"], float), np.asarray(t["detected"], bool)
     sel = mag < mag.min() + width
     summary = json.loads((run / "summary.json").read_text())
-    m50 = summary["kinds"]["point"].get("m50_binned")
+    m50 = summary["kinds"][kind].get("m50_binned")
     return float(det[sel].mean()), int(sel.sum()), float("nan") if m50 is None else float(m50)
 
 
@@ -124,23 +132,73 @@ def stars_part(work: Path, ncpu: int, nsims: int) -> list[str]:
     return lines
 
 
+def write_galaxy_field(directory: Path, multiplier: float, seed: int) -> Path:
+    """Write a demo tile with ``multiplier`` times its galaxy counts; returns the image's path."""
+    from comest_bayes.sim.demo import make_demo_tile, write_demo_tile
+
+    paths = write_demo_tile(make_demo_tile(seed=seed, size=GALAXY_TILE, galaxy_density=multiplier), directory)
+    return paths["image"]
+
+
+def galaxies_part(work: Path, ncpu: int, nsims: int) -> list[str]:
+    kinds = ("point", "buldisk")
+    lines = [f"demo tiles with more galaxies ({GALAXY_TILE}^2, 0.26\"/px, 0.9\" seeing; {nsims} realizations of "
+             "point sources and bulge+disk galaxies on the observed image; completeness of each range's "
+             "brightest 0.5 mag, +- binomial sd)",
+             f"{'galaxies x':>10s} {'per arcmin^2':>12s} {'share':>7s} {'rule':>9s} {'kind':>8s} {'automatic range':>16s} "
+             f"{'f bright':>15s} {'m50':>6s} | {'usual range':>12s} {'f bright':>15s} {'m50':>6s}"]
+    for i, mult in enumerate(GALAXY_DENSITIES):
+        inputs = work / f"galaxies_{mult:g}"
+        image = inputs / "demo_image.fits"
+        if not image.is_file():
+            write_galaxy_field(inputs, mult, seed=200 + i)
+        kind_col = np.char.strip(np.asarray(Table.read(inputs / "demo_truth.fits")["kind"]).astype(str))
+        ngal = int(np.count_nonzero(kind_col == "galaxy"))
+        area = (GALAXY_TILE * 0.26 / 60.0) ** 2
+        common = ["--weight", str(inputs / "demo_weight.fits"), "--mask", str(inputs / "demo_mask.fits"),
+                  "--set", "injection.on=observed", "--nsims", str(nsims), "--kinds", ",".join(kinds),
+                  "--fwhm", "3.46", "--model", "none", "--no-report", "--ncpu", str(ncpu), "--quiet"]
+        auto = work / f"galaxies_{mult:g}_auto"
+        _run(["run", str(image), *common, "--out", str(auto)])
+        rec = json.loads((auto / "run.json").read_text())["injection_range"]
+        usual = None
+        if rec["rule"] == "confused":
+            usual = work / f"galaxies_{mult:g}_usual"
+            rng = f"injection.mag_range=[{rec['usual_bright']},{rec['mag_range'][1]}]"
+            _run(["run", str(image), *common, "--set", rng, "--out", str(usual)])
+        for kind in kinds:
+            f_a, n_a, m50_a = bright_end(auto, kind=kind)
+            row = (f"{mult:10g} {ngal / area:12.0f} {rec.get('confusion_rise', float('nan')):7.4f} {rec['rule']:>9s} "
+                   f"{kind:>8s} {rec['mag_range'][0]:7.2f}-{rec['mag_range'][1]:.2f} {f_a:7.3f} +- "
+                   f"{math.sqrt(f_a * (1 - f_a) / n_a):.3f} {m50_a:6.2f}")
+            if usual is not None:
+                f_u, n_u, m50_u = bright_end(usual, kind=kind)
+                row += (f" | {rec['usual_bright']:5.2f}-{rec['mag_range'][1]:.2f} {f_u:7.3f} +- "
+                        f"{math.sqrt(f_u * (1 - f_u) / n_u):.3f} {m50_u:6.2f}")
+            lines.append(row)
+    return lines
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--work", type=Path, required=True, help="directory for the images and runs (resumed)")
     ap.add_argument("--images", action="store_true", help="the shared real images")
     ap.add_argument("--stars", action="store_true", help="synthetic star fields")
+    ap.add_argument("--galaxies", action="store_true", help="demo tiles with more galaxies")
     ap.add_argument("--nsims", type=int, default=20, help="realizations per star-field run")
     ap.add_argument("--ncpu", type=int, default=2)
     ap.add_argument("--out", type=Path, help="also write the tables to this text file")
     a = ap.parse_args(argv)
-    if not (a.images or a.stars):
-        ap.error("give --images, --stars or both")
+    if not (a.images or a.stars or a.galaxies):
+        ap.error("give --images, --stars, --galaxies or several")
     a.work.mkdir(parents=True, exist_ok=True)
     lines = []
     if a.images:
         lines += images_part(a.work, a.ncpu) + [""]
     if a.stars:
-        lines += stars_part(a.work, a.ncpu, a.nsims)
+        lines += stars_part(a.work, a.ncpu, a.nsims) + [""]
+    if a.galaxies:
+        lines += galaxies_part(a.work, a.ncpu, a.nsims)
     text = "\n".join(lines)
     print(text)
     if a.out:
