@@ -7,7 +7,7 @@ the detection footprints of the sources in the range's first 2 mag cover more th
 ``CONFUSION_RISE`` of the image, the range starts where the sources brighter than it cover
 ``CONFUSION_COVER``.
 
-Two parts:
+Three parts:
 
 * ``--images``: the shared real images (../shared/data), each run through detection with one point
   realization (``--model none``); prints the confusion share each gets and the range chosen.
@@ -23,8 +23,10 @@ Two parts:
 
     python benchmarks/bench_confusion.py --work /tmp/confusion --images --stars [--out FILE]
 
+    python benchmarks/bench_confusion.py --work /tmp/confusion --galaxies --nsims 10 --ncpu 1
+
 Run directories resume.  ``--images`` and ``--stars`` take about 15 minutes on two cores,
-``--galaxies`` about as long.
+``--galaxies --nsims 10`` about 8 minutes on one.
 """
 
 from __future__ import annotations
@@ -51,7 +53,7 @@ SIZE, SCALE, FWHM, SIGMA, ZP = 768, 0.5, 3.0, 10.0, 30.0
 #: Stars per arcmin^2 brighter than m5, one synthetic field each.
 DENSITIES = (3.0, 10.0, 30.0, 100.0, 300.0, 1000.0)
 SLOPE = 0.3  # d log10 N / dm of the star counts
-#: Multipliers of the demo tile's galaxy counts (1 = about 29 galaxies per arcmin^2 to m5 + 2).
+#: Multipliers of the demo tile's galaxy counts (1 = its own, 106 galaxies per arcmin^2 down to m5 + 2).
 GALAXY_DENSITIES = (1.0, 3.0, 10.0, 30.0)
 GALAXY_TILE = 1000
 
@@ -185,7 +187,7 @@ def main(argv=None) -> int:
     ap.add_argument("--images", action="store_true", help="the shared real images")
     ap.add_argument("--stars", action="store_true", help="synthetic star fields")
     ap.add_argument("--galaxies", action="store_true", help="demo tiles with more galaxies")
-    ap.add_argument("--nsims", type=int, default=20, help="realizations per star-field run")
+    ap.add_argument("--nsims", type=int, default=20, help="realizations per star-field or galaxy-field run")
     ap.add_argument("--ncpu", type=int, default=2)
     ap.add_argument("--out", type=Path, help="also write the tables to this text file")
     a = ap.parse_args(argv)
