@@ -37,6 +37,7 @@ import math
 from pathlib import Path
 
 import numpy as np
+from astropy.io import fits
 from astropy.table import Table
 
 SHARED = Path(__file__).resolve().parents[1] / ".." / "shared" / "data"
@@ -156,7 +157,7 @@ def galaxies_part(work: Path, ncpu: int, nsims: int) -> list[str]:
             write_galaxy_field(inputs, mult, seed=200 + i)
         kind_col = np.char.strip(np.asarray(Table.read(inputs / "demo_truth.fits")["kind"]).astype(str))
         ngal = int(np.count_nonzero(kind_col == "galaxy"))
-        area = (GALAXY_TILE * 0.26 / 60.0) ** 2
+        area = (GALAXY_TILE * float(fits.getheader(image)["PIXSCALE"]) / 60.0) ** 2  # arcmin^2
         common = ["--weight", str(inputs / "demo_weight.fits"), "--mask", str(inputs / "demo_mask.fits"),
                   "--set", "injection.on=observed", "--nsims", str(nsims), "--kinds", ",".join(kinds),
                   "--fwhm", "3.46", "--model", "none", "--no-report", "--ncpu", str(ncpu), "--quiet"]

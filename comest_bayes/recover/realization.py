@@ -203,7 +203,7 @@ def _detect(image, mask, noise, ctx: SimContext):
     fixed = ctx.detection.noise_level == "observed"
     background = None
     if ctx.detection.background_level == "observed":
-        background = _background(ctx.background_path)
+        background = _image(ctx.background_path, np.float32)
     return detect_with_backend(image, mask=mask,
                                weight_noise=noise if ctx.noise_mode == "weight" and not fixed else None,
                                threshold_noise=noise if fixed else None, threshold_background=background,
@@ -211,22 +211,14 @@ def _detect(image, mask, noise, ctx: SimContext):
                                config=ctx.detection, segmentation=False, inplace=True, check_finite=False)
 
 
-def _background(path: str) -> np.ndarray:
-    return _background_cached(_file_key(path))
+def _image(path: str, dtype) -> np.ndarray:
+    """A run image a worker reads for every realization (the background, the baseline segmentation), once."""
+    return _image_cached(_file_key(path), np.dtype(dtype).str)
 
 
-@functools.lru_cache(maxsize=1)
-def _background_cached(key: tuple) -> np.ndarray:
-    return fits.getdata(key[0]).astype(np.float32)
-
-
-def _segmentation(path: str) -> np.ndarray:
-    return _segmentation_cached(_file_key(path))
-
-
-@functools.lru_cache(maxsize=1)
-def _segmentation_cached(key: tuple) -> np.ndarray:
-    return fits.getdata(key[0]).astype(np.int32)
+@functools.lru_cache(maxsize=2)
+def _image_cached(key: tuple, dtype: str) -> np.ndarray:
+    return fits.getdata(key[0]).astype(dtype)
 
 
 def run_realization(task: RealizationTask) -> RealizationResult:
@@ -276,7 +268,7 @@ def _run_realization(task: RealizationTask) -> RealizationResult:
     det = _detect(image, mask, noise, ctx)
     t3 = time.perf_counter()
     del image
-    kept = _segmentation(ctx.baseline_segmentation_path) if ctx.baseline_segmentation_path else None
+    kept = _image(ctx.baseline_segmentation_path, np.int32) if ctx.baseline_segmentation_path else None
     truth, dets = match_realization(truth, det.catalog, _table(ctx.baseline_path), noise, ctx, kept_segmentation=kept)
     truth["realization"] = np.full(len(truth), index, dtype=np.int32)
     dets["realization"] = np.full(len(dets), index, dtype=np.int32)
