@@ -140,9 +140,8 @@ def run_replicate(task: dict) -> dict:
     table = S.draw_outcomes(truth, scene, task["n"], mag_range=(lo, hi), seed=task["draw_seed"])
     edges = R.magnitude_edges(lo, hi, MAG_BIN)
     centers = 0.5 * (edges[:-1] + edges[1:])
-    config = RunConfig(seed=task["fit_seed"])
-    if task.get("min_ess") is not None:
-        config = RunConfig(seed=task["fit_seed"], fit=FitConfig(min_ess=float(task["min_ess"])))
+    fit_settings = {k: task[k] for k in ("min_ess", "sampler", "max_steps") if task.get(k) is not None}
+    config = RunConfig(seed=task["fit_seed"], fit=FitConfig(**fit_settings))
     load = os.getloadavg()[0] if hasattr(os, "getloadavg") else None
     t0, c0 = time.perf_counter(), time.process_time()
     with warnings.catch_warnings(record=True) as caught:
@@ -198,6 +197,7 @@ def run_replicate(task: dict) -> dict:
             "f_faint": _num(float(S.truth_curve(truth, scene, tq["mag_faint"], positions=fp)))},
         "npos": int(len(fp)),
         "converged": diag.get("converged"),
+        "sampler": diag.get("method"), "sampler_seconds": diag.get("seconds"),
         "shape_p": shape.get("p_value"),
         "warnings": sorted({str(w.message)[:200] for w in caught})[:10],
     }
@@ -209,6 +209,23 @@ def _atomic_write(path: Path, text: str) -> None:
     tmp = path.with_name(path.name + ".tmp")
     tmp.write_text(text)
     os.replace(tmp, path)
+
+
+def make_task(truths: dict, name: str, n: int, rep: int, *, seed: int, scene_params: dict, model: str,
+              min_ess=None, sampler=None, max_steps=None) -> dict:
+    """The worker's task for replicate ``rep`` of truth ``name`` at ``n`` injections (``truths``: :func:`truth_setup`).
+
+    ``sampler`` and ``max_steps`` override the package's ``FitConfig`` defaults (``bench_samplers.py``).
+    """
+    from comest_bayes.seeding import int_seed_for
+
+    t = truths[name]
+    return {"key": f"{name}|{n}|{rep}", "truth": name, "n": n, "rep": rep, "model": model,
+            "draw_seed": int_seed_for(seed, "honesty", name, n, rep, "draw"),
+            "fit_seed": int_seed_for(seed, "honesty", name, n, rep, "fit"),
+            "scene": scene_params, "mag_range": t["mag_range"], "truth_q": t["quantities"],
+            "grid": t["grid"], "grid_truth": t["grid_truth"], "min_ess": min_ess, "sampler": sampler,
+            "max_steps": max_steps}
 
 
 def truth_setup(names, scene) -> dict:
@@ -499,12 +516,8 @@ def main(argv=None) -> int:
                 key = f"{name}|{n}|{rep}"
                 if key in raw["records"]:
                     continue
-                t = truths[name]
-                tasks.append({"key": key, "truth": name, "n": n, "rep": rep, "model": a.model,
-                              "draw_seed": int_seed_for(a.seed, "honesty", name, n, rep, "draw"),
-                              "fit_seed": int_seed_for(a.seed, "honesty", name, n, rep, "fit"),
-                              "scene": scene_params, "mag_range": t["mag_range"], "truth_q": t["quantities"],
-                              "grid": t["grid"], "grid_truth": t["grid_truth"], "min_ess": a.min_ess})
+                tasks.append(make_task(truths, name, n, rep, seed=a.seed, scene_params=scene_params, model=a.model,
+                                       min_ess=a.min_ess))
     failures = []
     if tasks and not a.summarise_only:
         import multiprocessing

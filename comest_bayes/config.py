@@ -443,15 +443,16 @@ class FitConfig:
     purity_model : str
         Specification of the purity model fitted to the counted detections
         (matched vs false) in measured magnitude; ``none`` to skip.
-    sampler : {"auto", "importance", "emcee"}
+    sampler : {"auto", "importance", "nuts", "emcee"}
         How the chosen model's posterior is drawn: ``importance`` sampling
-        from its Laplace approximation (PSIS-checked), ``emcee`` (the
-        reference), or ``auto`` (default): importance sampling, falling back
-        to emcee when its Pareto k-hat exceeds 0.7 or its effective sample
-        size is below ``min_ess``.
+        from its Laplace approximation (PSIS-checked), ``nuts`` (BlackJAX's
+        No-U-Turn sampler, preconditioned by the Laplace approximation),
+        ``emcee`` (the reference), or ``auto`` (default): importance sampling,
+        falling back to NUTS when its Pareto k-hat exceeds 0.7 or its
+        effective sample size is below ``min_ess``.
     min_ess : float
         Effective sample size the posterior draws must reach (per parameter
-        for emcee).
+        for emcee and NUTS).
     max_steps : int
         Longest emcee run (steps per walker); a shorter convergence warns.
     map_step_arcmin : float
@@ -467,8 +468,8 @@ class FitConfig:
 
     def __post_init__(self):
         _check(bool(self.model), "fit.model", self.model, "a model name, a TOML path, 'auto' or 'none'")
-        _check(self.sampler in ("auto", "importance", "emcee"), "fit.sampler", self.sampler,
-               "auto, importance or emcee")
+        _check(self.sampler in ("auto", "importance", "nuts", "emcee"), "fit.sampler", self.sampler,
+               "auto, importance, nuts or emcee")
         _check(self.min_ess >= 10, "fit.min_ess", self.min_ess, "an effective sample size >= 10, e.g. 1000")
         _check(self.max_steps >= 100, "fit.max_steps", self.max_steps, "an integer >= 100")
         _check(self.map_step_arcmin > 0, "fit.map_step_arcmin", self.map_step_arcmin, "a positive size in arcmin")

@@ -68,6 +68,8 @@ class Stream:
     EMCEE = "emcee"
     #: ``bayes.inference``: the draws of the importance sampler.
     IMPORTANCE = "importance"
+    #: ``bayes.inference``: the starting points and the random keys of the NUTS chains.
+    NUTS = "nuts"
 
     # -- number counts (lf), from the seed given to lf.model.fit_counts
     #: ``lf.model``: the starting points of an LF model.

@@ -1,8 +1,9 @@
 """Posterior inference for the completeness (and purity) models.
 
 :func:`fit` chains :func:`fit_map` (the MAP point), :func:`laplace` (the Gaussian approximation
-there) and the posterior draws (:func:`importance_posterior`, or emcee in
-:func:`sample_posterior`), all in the model's unconstrained parameters.  The model contract, the
+there) and the posterior draws (:func:`importance_posterior`; NUTS in
+:func:`comest_bayes.bayes.nuts.nuts_posterior` where that fails; emcee in :func:`sample_posterior`, the
+reference), all in the model's unconstrained parameters.  The model contract, the
 sampler's convergence rules and the seeding: ``docs/bayesian.md`` ("Inference").
 """
 
@@ -20,6 +21,8 @@ from scipy.optimize import minimize
 from comest_bayes.errors import InputError
 from comest_bayes.io.jsonio import json_float
 from comest_bayes.bayes.psis import psis_log_weights
+from comest_bayes.bayes.nuts import nuts_posterior, supports_nuts
+from comest_bayes.bayes.samples import PosteriorSamples
 from comest_bayes.seeding import Stream, int_seed_for, rng_for
 
 __all__ = [
@@ -193,28 +196,6 @@ class PosteriorDiagnostics:
             "warnings": list(self.warnings),
             "seconds": json_float(self.seconds),
         }
-
-
-@dataclass
-class PosteriorSamples:
-    """Posterior draws of :func:`sample_posterior`.
-
-    Attributes
-    ----------
-    samples : ndarray, shape (nwalkers * (nsteps - burn), D)
-        Post-burn-in draws, unconstrained ``theta``, flattened step-major
-        (row ``s * nwalkers + w`` is walker ``w`` at kept step ``s``).
-    chain : ndarray, shape (nsteps, nwalkers, D)
-        The whole chain, burn-in included.
-    log_prob : ndarray, shape (nsteps, nwalkers)
-        Log posterior of every chain position.
-    diagnostics : PosteriorDiagnostics
-    """
-
-    samples: np.ndarray
-    chain: np.ndarray
-    log_prob: np.ndarray
-    diagnostics: PosteriorDiagnostics
 
 
 @dataclass
@@ -738,7 +719,11 @@ def sample_posterior(model, lap: LaplaceResult, *, seed: int, nwalkers: int | No
 #: effective draws the Monte Carlo error of a 95% interval's end is about a tenth of the posterior sd.
 IS_MIN_ESS = 400.0
 
-#: Longest emcee run (steps per walker) when importance sampling fails and ``sampler="auto"`` falls back.
+#: The posterior samplers of :func:`fit` (``sampler``).
+SAMPLERS = ("auto", "importance", "nuts", "emcee")
+
+#: Longest emcee run (steps per walker) when importance sampling fails, ``sampler="auto"`` falls back and the
+#: model has no traceable density for NUTS.
 FALLBACK_MAX_STEPS = 5000
 
 #: Rounds of moment matching after the first importance-sampling round (each only when the previous
@@ -1018,15 +1003,17 @@ def fit(model, *, seed: int, sample: bool = True, nstarts: int = 6, min_ess: flo
         See :func:`fit_map`.
     min_ess, max_steps, chunk, nwalkers, progress, moves
         See :func:`sample_posterior`.
-    sampler : {"emcee", "importance", "auto"}
+    sampler : {"emcee", "importance", "nuts", "auto"}
         ``emcee`` (the reference), ``importance``
         (:func:`importance_posterior` from the Laplace approximation, asking
         for an effective sample size of ``min(min_ess, IS_MIN_ESS)``, pooling
-        up to :data:`IS_MAX_DRAWS` proposal draws if that falls short), or
-        ``auto``: importance sampling, and emcee when its Pareto k-hat or
-        effective sample size still fails (:data:`IS_KHAT_MAX`), to ESS
-        ``min(min_ess, IS_MIN_ESS)`` in at most :data:`FALLBACK_MAX_STEPS`
-        steps.
+        up to :data:`IS_MAX_DRAWS` proposal draws if that falls short),
+        ``nuts`` (:func:`comest_bayes.bayes.nuts.nuts_posterior`, to ESS
+        ``min_ess``), or ``auto``: importance sampling, and NUTS to ESS
+        ``min(min_ess, IS_MIN_ESS)`` when its Pareto k-hat or effective sample
+        size still fails (:data:`IS_KHAT_MAX`); a model without a traceable
+        density (:func:`~comest_bayes.bayes.nuts.supports_nuts`) falls back to
+        emcee instead, in at most :data:`FALLBACK_MAX_STEPS` steps.
     start : array, optional
         An extra first MAP start (a warm start, e.g. a simpler rung's MAP).
     mp : MapResult, optional
@@ -1036,8 +1023,8 @@ def fit(model, *, seed: int, sample: bool = True, nstarts: int = 6, min_ess: flo
     -------
     FitResult
     """
-    if sampler not in ("emcee", "importance", "auto"):
-        raise InputError(f"fit: sampler must be 'emcee', 'importance' or 'auto', got {sampler!r}")
+    if sampler not in SAMPLERS:
+        raise InputError(f"fit: sampler must be one of {', '.join(map(repr, SAMPLERS))}, got {sampler!r}")
     t0 = time.perf_counter()
     if mp is None:
         mp = fit_map(model, nstarts=nstarts, seed=seed, method=method, start=start)
@@ -1046,15 +1033,27 @@ def fit(model, *, seed: int, sample: bool = True, nstarts: int = 6, min_ess: flo
     if sample and sampler in ("importance", "auto"):
         is_ess = min(min_ess, IS_MIN_ESS)
         post = importance_posterior(model, lap, seed=seed, min_ess=is_ess)
-        if sampler == "auto" and not post.diagnostics.converged:
+        if sampler == "auto" and not post.diagnostics.converged and supports_nuts(model):
+            # the posterior is far from the Laplace Gaussian (a curved ridge, a skewed tail): NUTS follows it with
+            # the gradient, to the same ESS; it warns with its diagnostics if it too falls short
+            note = post.diagnostics.warnings[-1] + "; sampled with NUTS instead"
+            post = nuts_posterior(model, lap, seed=seed, min_ess=is_ess)
+            post.diagnostics.warnings.insert(0, note)
+            if not post.diagnostics.converged:
+                warnings.warn(post.diagnostics.warnings[-1], ConvergenceWarning, stacklevel=2)
+        elif sampler == "auto" and not post.diagnostics.converged:
             note = post.diagnostics.warnings[-1] + "; sampled with emcee instead"
-            # bounded fallback: ESS 400 (as for importance sampling) and at most FALLBACK_MAX_STEPS steps; a
-            # shorter chain than emcee's 50-tau rule asks for warns with its numbers
+            # a model without a traceable density: bounded emcee, ESS 400 (as for importance sampling) and at most
+            # FALLBACK_MAX_STEPS steps; a shorter chain than emcee's 50-tau rule asks for warns with its numbers
             post = sample_posterior(model, lap, seed=seed, nwalkers=nwalkers, min_ess=min(min_ess, IS_MIN_ESS),
                                     max_steps=min(max_steps, FALLBACK_MAX_STEPS), chunk=chunk, progress=progress,
                                     moves=moves)
             post.diagnostics.warnings.insert(0, note)
         elif not post.diagnostics.converged:
+            warnings.warn(post.diagnostics.warnings[-1], ConvergenceWarning, stacklevel=2)
+    elif sample and sampler == "nuts":
+        post = nuts_posterior(model, lap, seed=seed, min_ess=min_ess)
+        if not post.diagnostics.converged:
             warnings.warn(post.diagnostics.warnings[-1], ConvergenceWarning, stacklevel=2)
     elif sample:
         post = sample_posterior(model, lap, seed=seed, nwalkers=nwalkers, min_ess=min_ess, max_steps=max_steps,

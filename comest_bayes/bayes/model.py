@@ -193,6 +193,11 @@ def _log_prob(st: _Structure, theta, data, prior):
     return jnp.where(ok, _sanitize(_log_prior(st, safe, prior) + _log_likelihood(st, safe, data)), -jnp.inf)
 
 
+def _log_prob_free(st, theta, pinned, free_idx, data, prior):
+    """:func:`_log_prob` of the free parameters ``theta`` (the pinned ones set from ``pinned``): traceable."""
+    return _log_prob(st, pinned.at[free_idx].set(theta), data, prior)
+
+
 def _value_and_grad(st, theta, data, prior):
     v, g = jax.value_and_grad(_log_prob, argnums=1)(st, theta, data, prior)
     g = jnp.where(jnp.isfinite(v), g, jnp.where(jnp.isfinite(g), g, 0.0))
@@ -650,6 +655,17 @@ class CompletenessModel:
         """:meth:`log_prob` and its gradient, shape (ndim,)."""
         v, g = _jit_value_and_grad(self._st, self._theta(theta), self._data, self._prior)
         return float(v), np.asarray(g)[self._free_idx]
+
+    def log_density(self) -> tuple:
+        """The log posterior as a traceable function, for gradient-based samplers.
+
+        Returns ``(fn, static, args)``: ``fn(static, theta, *args)`` is :meth:`log_prob` of the free
+        parameters ``theta`` (ndim,), written in JAX; ``static`` is hashable (a compiled sampler can
+        be keyed on it) and ``args`` are arrays, so one compiled program serves every data set of the
+        same structure and padded size.
+        """
+        args = (jnp.asarray(self._pinned), jnp.asarray(self._free_idx), self._data, self._prior)
+        return _log_prob_free, self._st, args
 
     def log_prob_batch(self, thetas) -> np.ndarray:
         """:meth:`log_prob` of each row of ``thetas`` (W, ndim) -> (W,), for emcee ``vectorize=True``.

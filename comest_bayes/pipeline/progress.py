@@ -27,8 +27,8 @@ HEARTBEAT_SECONDS = 60.0
 def describe_fit(task: dict, counts_entry: dict, config) -> str:
     """What one fit does, in words: the model or the selection among models, the sampler, the data."""
 
-    sampler = {"auto": "importance sampling (emcee if that fails)", "importance": "importance sampling",
-               "emcee": "emcee"}.get(config.fit.sampler, config.fit.sampler)
+    sampler = {"auto": "importance sampling (NUTS if that fails)", "importance": "importance sampling",
+               "nuts": "NUTS", "emcee": "emcee"}.get(config.fit.sampler, config.fit.sampler)
     spec = load_spec(task["requested"])
     if spec.is_selection:
         names = [c.name for c in resolve_candidates(spec)]

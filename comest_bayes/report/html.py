@@ -539,6 +539,17 @@ def _model_sections(r: _Report) -> None:
                       _num(diag.get("khat")), _num(diag.get("ess"), "{:.0f}"),
                       "yes" if diag.get("converged") else "NO", _num(e.get("seconds"), "{:.1f}")]],
                     numeric=(1, 2, 3, 5))
+        elif diag and diag.get("method") == "nuts":
+            ess = [min(b, t) for b, t in zip(diag.get("ess_bulk", []), diag.get("ess_tail", []))
+                   if b is not None and t is not None]
+            rhat = [v for v in diag.get("rhat", []) if v is not None]
+            r.table(["posterior draws", "chains", "draws per chain", "min ESS (bulk, tail)", "max R̂",
+                     "divergences", "leapfrog steps per draw", "converged", "fit time (s)"],
+                    [["NUTS, preconditioned by the Laplace approximation", diag.get("nchains"), diag.get("ndraws"),
+                      _num(min(ess) if ess else None, "{:.0f}"), _num(max(rhat) if rhat else None, "{:.3f}"),
+                      diag.get("divergences"), _num(diag.get("mean_leapfrog"), "{:.1f}"),
+                      "yes" if diag.get("converged") else "NO", _num(e.get("seconds"), "{:.1f}")]],
+                    numeric=(1, 2, 3, 4, 5, 6, 8))
         elif diag:
             ess = [v for v in diag.get("ess", []) if v is not None]
             tau = [v for v in diag.get("tau", []) if v is not None]
@@ -556,7 +567,7 @@ def _model_sections(r: _Report) -> None:
                 "model's form, not its statistics, limits it: then trust the binned ratios.")
         for w in e.get("warnings") or []:
             r.p(f"warning: {w}", "warn")
-        if diag and diag.get("method") != "importance":
+        if diag and diag.get("method") not in ("importance", "nuts"):  # emcee's autocorrelation and traces
 
             def make(diag=diag, kind=kind, q=q, name=e["name"]):
                 post = RD.load_posterior(run, kind, q)

@@ -453,4 +453,4 @@ def test_fit_samples_by_importance_with_the_intervals_of_emcee(model2):
         np.testing.assert_allclose(np.percentile(res.posterior.samples[:, j], [16, 50, 84]),
                                    np.percentile(ref.posterior.samples[:, j], [16, 50, 84]), atol=0.1 * sd)
     with pytest.raises(InputError, match="sampler"):
-        fit(model2, seed=3, sampler="nuts")
+        fit(model2, seed=3, sampler="hmc")
