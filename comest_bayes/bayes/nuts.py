@@ -35,7 +35,7 @@ from comest_bayes.io.jsonio import json_float
 from comest_bayes.seeding import Stream, rng_for
 
 __all__ = ["NutsDiagnostics", "nuts_posterior", "supports_nuts", "RHAT_MAX", "NUTS_CHAINS", "NUTS_WARMUP",
-           "NUTS_DRAWS"]
+           "NUTS_DRAWS", "MAX_DOUBLINGS", "MAX_GRADIENTS"]
 
 #: Largest rank-normalised split R-hat of a converged run (Vehtari et al. 2021).
 RHAT_MAX = 1.01
@@ -60,6 +60,16 @@ NUTS_DRAWS = 250
 TARGET_ACCEPT = 0.9
 TARGET_ACCEPT_RETRY = 0.97
 
+#: Most trajectory doublings per iteration (at most 2^8 - 1 = 255 leapfrog steps; BlackJAX's default is 10).
+MAX_DOUBLINGS = 8
+
+#: Gradient evaluations (leapfrog steps over all chains, warm-up included) after which no further round of
+#: draws starts.  The curved ridges NUTS is for took 100,000-300,000 in the honesty benchmark (the most, a
+#: 30,000-injection long tail: 250,000 left it at ESS 183).  A posterior that needs far more (a fixed rough
+#: spline's, whose knot rates beyond the data are held only by the prior: 40-200 leapfrog steps per draw)
+#: stops here unconverged, with a warning, instead of running for ten minutes.
+MAX_GRADIENTS = 400_000
+
 
 @dataclass
 class NutsDiagnostics:
@@ -78,6 +88,8 @@ class NutsDiagnostics:
         Adapted step size of every chain (in the whitened coordinates).
     mean_leapfrog : float
         Mean number of leapfrog steps per draw (the cost of a draw in gradient evaluations).
+    gradients : int
+        Gradient evaluations of the whole run, warm-up (and a repeated run) included.
     nchains, nwarmup, ndraws : int
         Chains, warm-up iterations and kept draws per chain.
     target_accept : float
@@ -96,6 +108,7 @@ class NutsDiagnostics:
     divergences: int
     step_size: list
     mean_leapfrog: float
+    gradients: int
     nchains: int
     nwarmup: int
     ndraws: int
@@ -119,7 +132,7 @@ class NutsDiagnostics:
         return {"method": self.method, "names": list(self.names),
                 "ess_bulk": [json_float(e) for e in self.ess_bulk], "ess_tail": [json_float(e) for e in self.ess_tail],
                 "rhat": [json_float(r) for r in self.rhat], "divergences": int(self.divergences),
-                "step_size": [json_float(s) for s in self.step_size], "mean_leapfrog": json_float(self.mean_leapfrog),
+                "step_size": [json_float(s) for s in self.step_size], "mean_leapfrog": json_float(self.mean_leapfrog), "gradients": int(self.gradients),
                 "nchains": int(self.nchains), "nwarmup": int(self.nwarmup), "ndraws": int(self.ndraws),
                 "target_accept": float(self.target_accept), "min_ess": json_float(self.min_ess),
                 "converged": bool(self.converged), "warnings": list(self.warnings),
@@ -149,13 +162,16 @@ def _programs():
             adapt = blackjax.window_adaptation(blackjax.nuts, density(fn, static, mean, chol, args),
                                                is_mass_matrix_diagonal=False, initial_step_size=0.5,
                                                target_acceptance_rate=target,
-                                               adaptation_info_fn=get_filter_adapt_info_fn())
-            (state, params), _ = adapt.run(key, z0, num_steps=nwarm)
-            return state.position, params["step_size"], params["inverse_mass_matrix"]
+                                               adaptation_info_fn=get_filter_adapt_info_fn(
+                                                   info_keys={"num_integration_steps"}),
+                                               max_num_doublings=MAX_DOUBLINGS)
+            (state, params), info = adapt.run(key, z0, num_steps=nwarm)
+            return (state.position, params["step_size"], params["inverse_mass_matrix"],
+                    jax.numpy.sum(info.info.num_integration_steps))
 
         def draws(fn, static, ndraws, key, z0, step_size, inv_mass, mean, chol, args):
             kernel = blackjax.nuts(density(fn, static, mean, chol, args), step_size=step_size,
-                                   inverse_mass_matrix=inv_mass)
+                                   inverse_mass_matrix=inv_mass, max_num_doublings=MAX_DOUBLINGS)
 
             def one(state, k):
                 state, info = kernel.step(k, state)
@@ -219,7 +235,9 @@ def nuts_posterior(model, lap, *, seed: int, min_ess: float = 400.0, nchains: in
         ``samples`` (nchains * kept draws, D), step-major like emcee's (row ``s * nchains + c``);
         ``chain`` (draws, nchains, D) and ``log_prob`` (draws, nchains) hold the kept draws;
         ``diagnostics`` a :class:`NutsDiagnostics`.  A run with divergences is repeated once with a
-        higher target acceptance (smaller steps) before it is reported.
+        higher target acceptance (smaller steps) before it is reported, if the first used less than
+        half of :data:`MAX_GRADIENTS`; no round of draws starts after that budget is spent (the first
+        always runs), and a run stopped there warns.
     """
     if not supports_nuts(model):
         raise InputError(f"nuts_posterior: {type(model).__name__} has no log_density(); use emcee or importance "
@@ -237,10 +255,14 @@ def nuts_posterior(model, lap, *, seed: int, min_ess: float = 400.0, nchains: in
     z_start = rng.standard_normal((nchains, d))
     keys = rng.integers(0, 2**31 - 1, size=2)
     result = None
+    gradients = 0  # leapfrog steps of every chain so far, warm-up included
     for target in (TARGET_ACCEPT, TARGET_ACCEPT_RETRY):
-        pos, step, inv_mass = prog["warmup"](fn, static, int(nwarmup), np.float64(target),
-                                             prog["split"](prog["key"](int(keys[0])), nchains), z_start, mean, chol,
-                                             args)
+        if result is not None and gradients > MAX_GRADIENTS // 2:
+            break  # no budget left for a second run: report the first
+        pos, step, inv_mass, nwarm_leap = prog["warmup"](fn, static, int(nwarmup), np.float64(target),
+                                                         prog["split"](prog["key"](int(keys[0])), nchains), z_start,
+                                                         mean, chol, args)
+        gradients += int(np.sum(np.asarray(nwarm_leap)))
         key = prog["key"](int(keys[1]))
         parts = []  # (z, logdensity, leapfrog, divergent) per round, each (nchains, ndraws, ...)
         while True:
@@ -248,29 +270,38 @@ def nuts_posterior(model, lap, *, seed: int, min_ess: float = 400.0, nchains: in
             z, lp, nleap, div = (np.asarray(x) for x in prog["draws"](fn, static, int(ndraws), prog["split"](sub, nchains),
                                                                       pos, step, inv_mass, mean, chol, args))
             pos = z[:, -1]
+            gradients += int(np.sum(nleap))
             parts.append((z, lp, nleap, div))
             # judged in theta, the parameters a user reads (ESS is not invariant under the whitening's rotation)
             theta = mean + np.einsum("ij,csj->csi", chol, np.concatenate([p[0] for p in parts], axis=1))
             bulk, tail, rhat = _diagnose(theta)
             kept = theta.shape[1]
-            if (min(bulk.min(), tail.min()) >= min_ess and rhat.max() <= RHAT_MAX) or kept + ndraws > max_draws:
+            # the next round would cost about as much as this one
+            over_budget = gradients + int(np.sum(nleap)) > MAX_GRADIENTS
+            if (min(bulk.min(), tail.min()) >= min_ess and rhat.max() <= RHAT_MAX) or kept + ndraws > max_draws \
+                    or over_budget:
                 break
         lp_all = np.concatenate([p[1] for p in parts], axis=1)
         nleap = np.concatenate([p[2] for p in parts], axis=1)
         ndiv = int(np.sum(np.concatenate([p[3] for p in parts], axis=1)))
-        result = (theta, lp_all, nleap, ndiv, [float(e) for e in np.asarray(step)], bulk, tail, rhat, target)
+        result = (theta, lp_all, nleap, ndiv, [float(e) for e in np.asarray(step)], bulk, tail, rhat, target,
+                  over_budget)
         if ndiv == 0:
             break
-    theta, lp_all, nleap, ndiv, steps, bulk, tail, rhat, target = result
+    theta, lp_all, nleap, ndiv, steps, bulk, tail, rhat, target, over_budget = result
     issued = []
     converged = bool(min(bulk.min(), tail.min()) >= min_ess and rhat.max() <= RHAT_MAX and ndiv == 0)
     if not converged:
         worst = int(np.argmin(np.minimum(bulk, tail)))
         issued.append(f"NUTS did not converge: smallest ESS {min(bulk.min(), tail.min()):.0f} ({model.names[worst]}; "
                       f"wanted >= {min_ess:.0f}), largest R-hat {rhat.max():.3f} (wanted <= {RHAT_MAX}), "
-                      f"{ndiv} divergent transition(s) in {theta.shape[0] * theta.shape[1]} draws")
+                      f"{ndiv} divergent transition(s) in {theta.shape[0] * theta.shape[1]} draws"
+                      + (f"; stopped at its budget of {MAX_GRADIENTS} gradient evaluations ({gradients} used: "
+                         f"{np.mean(nleap):.0f} leapfrog steps per draw, a posterior far from any Gaussian)"
+                         if over_budget else ""))
     diag = NutsDiagnostics(names=list(model.names), ess_bulk=bulk, ess_tail=tail, rhat=rhat, divergences=ndiv,
-                           step_size=steps, mean_leapfrog=float(np.mean(nleap)), nchains=int(nchains),
+                           step_size=steps, mean_leapfrog=float(np.mean(nleap)), gradients=int(gradients),
+                           nchains=int(nchains),
                            nwarmup=int(nwarmup), ndraws=int(theta.shape[1]), target_accept=float(target),
                            min_ess=float(min_ess), converged=converged, warnings=issued,
                            seconds=time.perf_counter() - t0)
