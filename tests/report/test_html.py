@@ -101,7 +101,7 @@ def _expected_figures(summary: dict, run_dir) -> set:
         for q, key in (("completeness", "model"), ("purity", "purity_model")):
             entry = k.get(key) or {}
             if entry.get("name"):
-                if (entry.get("diagnostics") or {}).get("method") != "importance":  # emcee: chains to show
+                if (entry.get("diagnostics") or {}).get("method") not in ("importance", "nuts"):  # emcee's chains
                     names.add(f"sampler_{kind}_{q}")
                 if entry.get("selection"):
                     names.add(f"selection_{kind}_{q}")
@@ -243,6 +243,27 @@ def test_figure3_markers_are_the_realization_outcomes(report_run):
     image = fits.getdata(run.state["input_options"]["path"])  # where the run found its input
     good = np.isfinite(d.observed.data)
     np.testing.assert_allclose(d.observed.data[good], image[150:350, 150:350][good])
+
+
+def test_a_posterior_sampled_by_nuts_gets_its_diagnostics_table(report_run, tmp_path):
+    # The run's completeness entry given NUTS diagnostics (as a fit whose importance sampling failed writes
+    # them): the report states chains, draws, the smallest ESS, the largest R-hat and the divergences, and
+    # draws no emcee autocorrelation figure for it.
+    out = tmp_path / "run"
+    shutil.copytree(report_run[0], out, ignore=shutil.ignore_patterns("figures", "report.html", "again.html"))
+    summary = json.loads((out / "summary.json").read_text())
+    kind = next(iter(summary["kinds"]))
+    summary["kinds"][kind]["model"]["diagnostics"] = {
+        "method": "nuts", "names": ["m50_0", "log_w"], "ess_bulk": [812.0, 655.0], "ess_tail": [590.0, 701.0],
+        "rhat": [1.002, 1.007], "divergences": 0, "step_size": [0.21, 0.25, 0.19, 0.22], "mean_leapfrog": 27.5,
+        "gradients": 120000, "nchains": 4, "ndraws": 500, "nwarmup": 300, "target_accept": 0.9, "min_ess": 400.0,
+        "converged": True, "warnings": [], "seconds": 21.0}
+    (out / "summary.json").write_text(json.dumps(summary))
+    html = write_report(out).read_text()
+    row = html.split("NUTS, preconditioned by the Laplace approximation")[1].split("</tr>")[0]
+    cells = re.findall(r"<td[^>]*>([^<]*)</td>", row)
+    assert cells[:7] == ["4", "500", "590", "1.007", "0", "27.5", "yes"], cells
+    assert f"sampler_{kind}_completeness" not in _figures(html)
 
 
 def test_partial_run_without_posteriors_and_one_kind(partial_run):
