@@ -23,7 +23,8 @@ Usage::
     python benchmarks/bench_samplers.py --tables two_populations:3000:2 long_tail:3000:13 --out DIR
 
 Results go to ``<out>/raw.json`` as they arrive (a rerun skips the fits already there) and the
-table to ``<out>/summary.txt``.  One process, one thread: about 2-4 minutes per table.
+table to ``<out>/summary.txt``.  One process, one thread: about 5 minutes per table, most of it the
+emcee reference (an hour for the 11 default tables).
 """
 
 from __future__ import annotations

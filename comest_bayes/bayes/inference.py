@@ -985,6 +985,17 @@ def importance_posterior(model, lap: LaplaceResult, *, seed: int, ndraws: int = 
 # --------------------------------------------------------------------------- all stages
 
 
+def _nuts(model, lap, seed: int, min_ess: float, note: str | None = None) -> PosteriorSamples:
+    """:func:`~comest_bayes.bayes.nuts.nuts_posterior`, with ``note`` first in its warnings and a warning if it
+    did not converge."""
+    post = nuts_posterior(model, lap, seed=seed, min_ess=min_ess)
+    if note:
+        post.diagnostics.warnings.insert(0, note)
+    if not post.diagnostics.converged:
+        warnings.warn(post.diagnostics.warnings[-1], ConvergenceWarning, stacklevel=3)
+    return post
+
+
 def fit(model, *, seed: int, sample: bool = True, nstarts: int = 6, min_ess: float = 1000,
         max_steps: int = 20000, chunk: int = 500, nwalkers: int | None = None, progress: bool = False,
         method: str = "L-BFGS-B", moves="de", sampler: str = "emcee", start=None,
@@ -1033,28 +1044,24 @@ def fit(model, *, seed: int, sample: bool = True, nstarts: int = 6, min_ess: flo
     if sample and sampler in ("importance", "auto"):
         is_ess = min(min_ess, IS_MIN_ESS)
         post = importance_posterior(model, lap, seed=seed, min_ess=is_ess)
-        if sampler == "auto" and not post.diagnostics.converged and supports_nuts(model):
-            # the posterior is far from the Laplace Gaussian (a curved ridge, a skewed tail): NUTS follows it with
-            # the gradient, to the same ESS; it warns with its diagnostics if it too falls short
-            note = post.diagnostics.warnings[-1] + "; sampled with NUTS instead"
-            post = nuts_posterior(model, lap, seed=seed, min_ess=is_ess)
-            post.diagnostics.warnings.insert(0, note)
-            if not post.diagnostics.converged:
-                warnings.warn(post.diagnostics.warnings[-1], ConvergenceWarning, stacklevel=2)
-        elif sampler == "auto" and not post.diagnostics.converged:
-            note = post.diagnostics.warnings[-1] + "; sampled with emcee instead"
-            # a model without a traceable density: bounded emcee, ESS 400 (as for importance sampling) and at most
-            # FALLBACK_MAX_STEPS steps; a shorter chain than emcee's 50-tau rule asks for warns with its numbers
-            post = sample_posterior(model, lap, seed=seed, nwalkers=nwalkers, min_ess=min(min_ess, IS_MIN_ESS),
-                                    max_steps=min(max_steps, FALLBACK_MAX_STEPS), chunk=chunk, progress=progress,
-                                    moves=moves)
-            post.diagnostics.warnings.insert(0, note)
+        if sampler == "auto" and not post.diagnostics.converged:
+            failed = post.diagnostics.warnings[-1]
+            if supports_nuts(model):
+                # the posterior is far from the Laplace Gaussian (a curved ridge, a skewed tail): NUTS follows it
+                # with the gradient, to the same ESS
+                post = _nuts(model, lap, seed, is_ess, note=failed + "; sampled with NUTS instead")
+            else:
+                # a model without a traceable density: bounded emcee, ESS 400 (as for importance sampling) and at
+                # most FALLBACK_MAX_STEPS steps; a shorter chain than emcee's 50-tau rule asks for warns with its
+                # numbers
+                post = sample_posterior(model, lap, seed=seed, nwalkers=nwalkers, min_ess=is_ess,
+                                        max_steps=min(max_steps, FALLBACK_MAX_STEPS), chunk=chunk, progress=progress,
+                                        moves=moves)
+                post.diagnostics.warnings.insert(0, failed + "; sampled with emcee instead")
         elif not post.diagnostics.converged:
             warnings.warn(post.diagnostics.warnings[-1], ConvergenceWarning, stacklevel=2)
     elif sample and sampler == "nuts":
-        post = nuts_posterior(model, lap, seed=seed, min_ess=min_ess)
-        if not post.diagnostics.converged:
-            warnings.warn(post.diagnostics.warnings[-1], ConvergenceWarning, stacklevel=2)
+        post = _nuts(model, lap, seed, min_ess)
     elif sample:
         post = sample_posterior(model, lap, seed=seed, nwalkers=nwalkers, min_ess=min_ess, max_steps=max_steps,
                                 chunk=chunk, progress=progress, moves=moves)

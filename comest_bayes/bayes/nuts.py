@@ -18,7 +18,7 @@ Diagnostics follow Vehtari, Gelman, Simpson, Carpenter & Bürkner (2021, Bayesia
 rank-normalised split R-hat at most 1.01 and bulk and tail effective sample sizes of at least
 ``min_ess`` for every parameter, computed by :mod:`arviz`; and no divergent transition (a divergence
 means the integrator met curvature it cannot follow, and the draws near it may be biased).  Details:
-``docs/bayesian.md`` ("Sampling").
+``docs/bayesian.md`` ("Inference").
 """
 
 from __future__ import annotations
@@ -40,7 +40,7 @@ __all__ = ["NutsDiagnostics", "nuts_posterior", "supports_nuts", "RHAT_MAX", "NU
 #: Largest rank-normalised split R-hat of a converged run (Vehtari et al. 2021).
 RHAT_MAX = 1.01
 
-#: Chains per run (R-hat compares them; they run one after another in one process).
+#: Chains per run (R-hat compares them; they run side by side in one compiled program).
 NUTS_CHAINS = 4
 
 #: Warm-up iterations per chain (step size and dense mass matrix adaptation).  Fewer than Stan's 1000: the
@@ -132,7 +132,8 @@ class NutsDiagnostics:
         return {"method": self.method, "names": list(self.names),
                 "ess_bulk": [json_float(e) for e in self.ess_bulk], "ess_tail": [json_float(e) for e in self.ess_tail],
                 "rhat": [json_float(r) for r in self.rhat], "divergences": int(self.divergences),
-                "step_size": [json_float(s) for s in self.step_size], "mean_leapfrog": json_float(self.mean_leapfrog), "gradients": int(self.gradients),
+                "step_size": [json_float(s) for s in self.step_size], "mean_leapfrog": json_float(self.mean_leapfrog),
+                "gradients": int(self.gradients),
                 "nchains": int(self.nchains), "nwarmup": int(self.nwarmup), "ndraws": int(self.ndraws),
                 "target_accept": float(self.target_accept), "min_ess": json_float(self.min_ess),
                 "converged": bool(self.converged), "warnings": list(self.warnings),
@@ -180,8 +181,8 @@ def _programs():
             _, out = jax.lax.scan(one, kernel.init(z0), jax.random.split(key, ndraws))
             return out
 
-        # the chains run side by side (vmap): one call evaluates the density of every chain at once, which on
-        # a few hundred cells costs little more than one chain's evaluation
+        # the chains run side by side (vmap): one compiled program and one call for all of them (measured on a
+        # 21-parameter spline fit of 929 cells, as fast as running them one after another, not faster)
         def warmup_chains(fn, static, nwarm, target, keys, z0, mean, chol, args):
             return jax.vmap(lambda k, z: warmup(fn, static, nwarm, target, k, z, mean, chol, args))(keys, z0)
 
@@ -196,13 +197,13 @@ def _programs():
     return _PROGRAMS
 
 
-def _diagnose(z_chains: np.ndarray):
+def _diagnose(draws: np.ndarray):
     """Bulk and tail ESS and R-hat of every coordinate of draws (chain, draw, D), with arviz."""
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
         import arviz as az
 
-        ds = az.convert_to_dataset({"x": z_chains})
+        ds = az.convert_to_dataset({"x": draws})
         bulk = np.asarray(az.ess(ds, method="bulk")["x"].values, float)
         tail = np.asarray(az.ess(ds, method="tail")["x"].values, float)
         rhat = np.asarray(az.rhat(ds)["x"].values, float)
@@ -301,8 +302,8 @@ def nuts_posterior(model, lap, *, seed: int, min_ess: float = 400.0, nchains: in
                          if over_budget else ""))
     diag = NutsDiagnostics(names=list(model.names), ess_bulk=bulk, ess_tail=tail, rhat=rhat, divergences=ndiv,
                            step_size=steps, mean_leapfrog=float(np.mean(nleap)), gradients=int(gradients),
-                           nchains=int(nchains),
-                           nwarmup=int(nwarmup), ndraws=int(theta.shape[1]), target_accept=float(target),
+                           nchains=int(nchains), nwarmup=int(nwarmup), ndraws=int(theta.shape[1]),
+                           target_accept=float(target),
                            min_ess=float(min_ess), converged=converged, warnings=issued,
                            seconds=time.perf_counter() - t0)
     chain = np.transpose(theta, (1, 0, 2))  # (draws, chains, D), step-major as emcee's

@@ -162,10 +162,16 @@ def test_fit_falls_back_from_importance_sampling_to_nuts(real_model, monkeypatch
     d = res.posterior.diagnostics
     assert d.method == "nuts" and d.converged and d.min_ess == 400
     assert "k-hat = 0.90" in d.warnings[0] and "NUTS" in d.warnings[0]
-    for j in range(real_model.ndim):
-        sd = reference.posterior.samples[:, j].std()
-        np.testing.assert_allclose(np.percentile(res.posterior.samples[:, j], [16, 50, 84]),
-                                   np.percentile(reference.posterior.samples[:, j], [16, 50, 84]), atol=0.15 * sd)
+    # sampler="nuts" asks NUTS directly, to the full min_ess, with no note of a failed importance sampler
+    direct = fit(real_model, seed=5, sampler="nuts", min_ess=600)
+    assert direct.posterior.diagnostics.min_ess == 600 and direct.posterior.diagnostics.converged
+    assert not direct.posterior.diagnostics.warnings
+    for post in (res.posterior, direct.posterior):
+        for j in range(real_model.ndim):
+            sd = reference.posterior.samples[:, j].std()
+            np.testing.assert_allclose(np.percentile(post.samples[:, j], [16, 50, 84]),
+                                       np.percentile(reference.posterior.samples[:, j], [16, 50, 84]),
+                                       atol=0.15 * sd)
 
 
 def test_a_model_without_a_traceable_density_falls_back_to_emcee(monkeypatch):
