@@ -299,7 +299,7 @@ def fit_map(model, *, nstarts: int = 6, seed: int, jitter: float = 0.5, method: 
         Standard deviation of the start jitter, in unconstrained units.
     method : {"L-BFGS-B", "BFGS", "newton"}
         SciPy optimizer; all use the exact gradient ``model.value_and_grad``;
-        ``newton`` is SciPy's ``trust-exact`` with the exact Hessian
+        ``newton`` is SciPy's ``trust-exact`` with the model's Hessian
         (``model.hessian``): few, costlier iterations, the fastest from a warm
         start.
     maxiter : int, default 5000
@@ -367,7 +367,7 @@ def fit_map(model, *, nstarts: int = 6, seed: int, jitter: float = 0.5, method: 
     if method == "L-BFGS-B":
         options = {"maxiter": maxiter, "ftol": 1e-13, "gtol": 1e-7, "maxcor": 20}
     elif method == "newton":
-        # trust-region Newton with the exact Hessian: a few iterations from a warm start
+        # trust-region Newton with the model's Hessian: a few iterations from a warm start
         options = {"maxiter": 200, "gtol": 1e-6}
     else:
         options = {"maxiter": maxiter, "gtol": 1e-6}
