@@ -695,9 +695,9 @@ class CompletenessModel:
         Column ``j`` is ``(grad(theta + h_j e_j) - grad(theta)) / h_j`` with the compiled gradient
         (:meth:`value_and_grad`), ``h_j = HESSIAN_STEP * max(1, |theta_j|)`` taken towards 0 (so
         the step never leaves the parameter box), then symmetrised.  Its relative error is about
-        2e-6 (:data:`HESSIAN_STEP`; the tests compare it with ``jax.hessian``), far below what a Laplace approximation,
-        an evidence or a Newton step can feel, and it costs ``ndim`` gradients, about what the
-        exact Hessian costs at run time.  The exact one (``jax.hessian``, forward over reverse)
+        2e-6 (:data:`HESSIAN_STEP`; the tests compare it with ``jax.hessian``), far below what a
+        Laplace approximation, an evidence or a Newton step can feel, and it costs ``ndim``
+        gradients, about what the exact Hessian costs at run time.  The exact one (``jax.hessian``, forward over reverse)
         would be a program of its own: compiling it took 40% of a first run's fitting
         (docs/compute.md, "Compilation cache").  Where the log posterior is not finite at
         ``theta`` or at a step, the affected entries are NaN.
@@ -1055,8 +1055,9 @@ class CompletenessModel:
 #: Hessians a model remembers (:meth:`CompletenessModel.hessian`).
 HESSIAN_MEMO = 4
 #: Relative step of :meth:`CompletenessModel.hessian`'s forward differences.  Against ``jax.hessian``
-#: on five rungs at 3k and 100k outcomes the largest error, in units of ``sqrt(|H_ii H_jj|)``, was
-#: 19 x the step (truncation) down to 1e-8; rounding took over below it (1.1e-6 at 1e-8 on a spline).
+#: on five rungs at 3k and 100k outcomes, the largest error in units of ``sqrt(|H_ii H_jj|)`` was
+#: about 19 x the step for steps of 1e-5 to 1e-7 (truncation); at 1e-8 rounding began to show
+#: (1.1e-6 on a spline at 100k outcomes), and at 1e-9 it dominated (up to 1.6e-5).
 HESSIAN_STEP = 1e-7
 
 #: Rows of parameter vectors per compiled call of :meth:`CompletenessModel.log_prob_batch`.
