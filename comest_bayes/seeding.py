@@ -68,6 +68,8 @@ class Stream:
     EMCEE = "emcee"
     #: ``bayes.inference``: the draws of the importance sampler.
     IMPORTANCE = "importance"
+    #: ``bayes.inference``: the draws of its second try, with heavier tails, where the first fails.
+    IMPORTANCE_TAILS = "importance-tails"
     #: ``bayes.inference``: the starting points and the random keys of the NUTS chains.
     NUTS = "nuts"
 

@@ -174,6 +174,34 @@ def test_fit_falls_back_from_importance_sampling_to_nuts(real_model, monkeypatch
                                        atol=0.15 * sd)
 
 
+def test_fit_tries_heavier_tails_before_nuts(real_model, monkeypatch):
+    # The first importance sampler (t with 5 degrees of freedom) made to fail: fit(sampler="auto") must try a t
+    # with IS_RETRY_DF degrees of freedom from its own random stream, keep it when it passes (no NUTS), say so
+    # first in the warnings, and give the first sampler's intervals (0.15 sd, as above).
+    reference = fit(real_model, seed=5, sampler="importance", min_ess=1000)
+    seen = []
+
+    def first_fails(model, lap, **kw):
+        seen.append((kw.get("df", 5.0), kw.get("stream", inference.Stream.IMPORTANCE)))
+        post = importance_posterior(model, lap, **kw)
+        if "df" not in kw:
+            post.diagnostics.khat, post.diagnostics.converged = 0.9, False
+            post.diagnostics.warnings.append("importance sampling from the Laplace approximation: Pareto k-hat = 0.90")
+        return post
+
+    monkeypatch.setattr(inference, "importance_posterior", first_fails)
+    res = fit(real_model, seed=5, sampler="auto", min_ess=1000)
+    d = res.posterior.diagnostics
+    assert seen == [(5.0, "importance"), (inference.IS_RETRY_DF, "importance-tails")]
+    assert d.method == "importance" and d.converged and d.df == inference.IS_RETRY_DF
+    assert "k-hat = 0.90" in d.warnings[0] and "sampled again" in d.warnings[0]
+    assert not np.array_equal(res.posterior.samples, reference.posterior.samples)  # other draws
+    for j in range(real_model.ndim):
+        sd = reference.posterior.samples[:, j].std()
+        np.testing.assert_allclose(np.percentile(res.posterior.samples[:, j], [16, 50, 84]),
+                                   np.percentile(reference.posterior.samples[:, j], [16, 50, 84]), atol=0.15 * sd)
+
+
 def test_a_model_without_a_traceable_density_falls_back_to_emcee(monkeypatch):
     from toy_inference import toy_model
 
