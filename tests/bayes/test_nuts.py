@@ -145,19 +145,26 @@ def test_the_model_density_is_its_log_prob(real_model):
     assert float(fn(static, jnp.asarray(theta), *args)) == pytest.approx(real_model.log_prob(theta), rel=1e-12)
 
 
+def _importance_made_to_fail(first_only: bool, calls: list | None = None):
+    """:func:`importance_posterior` whose result fails (k-hat replaced by 0.9): every call, or only the first
+    try's (no ``df`` given); ``calls`` collects each call's (df, stream)."""
+    def failing(model, lap, **kw):
+        if calls is not None:
+            calls.append((kw.get("df", 5.0), kw.get("stream", inference.Stream.IMPORTANCE)))
+        post = importance_posterior(model, lap, **kw)
+        if not (first_only and "df" in kw):
+            post.diagnostics.khat, post.diagnostics.converged = 0.9, False
+            post.diagnostics.warnings.append("importance sampling from the Laplace approximation: Pareto k-hat = 0.90")
+        return post
+    return failing
+
+
 def test_fit_falls_back_from_importance_sampling_to_nuts(real_model, monkeypatch):
     # Importance sampling made to fail (its k-hat replaced by 0.9): fit(sampler="auto") must sample with NUTS,
     # name the failure first in the diagnostics' warnings, and give the importance sampler's intervals (0.15 sd:
     # both Monte Carlo errors are ~0.05 sd at ESS >= 400).
     reference = fit(real_model, seed=5, sampler="importance", min_ess=1000)
-
-    def failing(model, lap, **kw):
-        post = importance_posterior(model, lap, **kw)
-        post.diagnostics.khat, post.diagnostics.converged = 0.9, False
-        post.diagnostics.warnings.append("importance sampling from the Laplace approximation: Pareto k-hat = 0.90")
-        return post
-
-    monkeypatch.setattr(inference, "importance_posterior", failing)
+    monkeypatch.setattr(inference, "importance_posterior", _importance_made_to_fail(first_only=False))
     res = fit(real_model, seed=5, sampler="auto", min_ess=1000)
     d = res.posterior.diagnostics
     assert d.method == "nuts" and d.converged and d.min_ess == 400
@@ -180,16 +187,7 @@ def test_fit_tries_heavier_tails_before_nuts(real_model, monkeypatch):
     # first in the warnings, and give the first sampler's intervals (0.15 sd, as above).
     reference = fit(real_model, seed=5, sampler="importance", min_ess=1000)
     seen = []
-
-    def first_fails(model, lap, **kw):
-        seen.append((kw.get("df", 5.0), kw.get("stream", inference.Stream.IMPORTANCE)))
-        post = importance_posterior(model, lap, **kw)
-        if "df" not in kw:
-            post.diagnostics.khat, post.diagnostics.converged = 0.9, False
-            post.diagnostics.warnings.append("importance sampling from the Laplace approximation: Pareto k-hat = 0.90")
-        return post
-
-    monkeypatch.setattr(inference, "importance_posterior", first_fails)
+    monkeypatch.setattr(inference, "importance_posterior", _importance_made_to_fail(first_only=True, calls=seen))
     res = fit(real_model, seed=5, sampler="auto", min_ess=1000)
     d = res.posterior.diagnostics
     assert seen == [(5.0, "importance"), (inference.IS_RETRY_DF, "importance-tails")]
@@ -208,13 +206,7 @@ def test_a_model_without_a_traceable_density_falls_back_to_emcee(monkeypatch):
     model = toy_model(4000, seed=2)
     assert not supports_nuts(model)
 
-    def failing(model, lap, **kw):
-        post = importance_posterior(model, lap, **kw)
-        post.diagnostics.converged = False
-        post.diagnostics.warnings.append("importance sampling failed")
-        return post
-
-    monkeypatch.setattr(inference, "importance_posterior", failing)
+    monkeypatch.setattr(inference, "importance_posterior", _importance_made_to_fail(first_only=False))
     res = fit(model, seed=5, sampler="auto", min_ess=200, chunk=250)
     assert res.posterior.diagnostics.to_dict()["method"] == "emcee"
     assert "emcee instead" in res.posterior.diagnostics.warnings[0]
