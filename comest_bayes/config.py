@@ -22,6 +22,7 @@ if sys.version_info >= (3, 11):
 else:  # pragma: no cover - exercised on Python 3.10 only
     import tomli as tomllib
 
+from comest_bayes.bayes.samples import SAMPLERS
 from comest_bayes.errors import ConfigError
 from comest_bayes.io.jsonio import jsonable
 
@@ -447,9 +448,10 @@ class FitConfig:
         How the chosen model's posterior is drawn: ``importance`` sampling
         from its Laplace approximation (PSIS-checked), ``nuts`` (BlackJAX's
         No-U-Turn sampler, preconditioned by the Laplace approximation),
-        ``emcee`` (the reference), or ``auto`` (default): importance sampling,
-        falling back to NUTS when its Pareto k-hat exceeds 0.7 or its
-        effective sample size is below ``min_ess``.
+        ``emcee`` (the reference), or ``auto`` (default): importance sampling;
+        when its Pareto k-hat exceeds 0.7 or its effective sample size is
+        below ``min_ess``, importance sampling again with heavier tails, and
+        NUTS when that fails too.
     min_ess : float
         Effective sample size the posterior draws must reach (per parameter
         for emcee and NUTS).
@@ -468,8 +470,7 @@ class FitConfig:
 
     def __post_init__(self):
         _check(bool(self.model), "fit.model", self.model, "a model name, a TOML path, 'auto' or 'none'")
-        _check(self.sampler in ("auto", "importance", "nuts", "emcee"), "fit.sampler", self.sampler,
-               "auto, importance, nuts or emcee")
+        _check(self.sampler in SAMPLERS, "fit.sampler", self.sampler, ", ".join(SAMPLERS))
         _check(self.min_ess >= 10, "fit.min_ess", self.min_ess, "an effective sample size >= 10, e.g. 1000")
         _check(self.max_steps >= 100, "fit.max_steps", self.max_steps, "an integer >= 100")
         _check(self.map_step_arcmin > 0, "fit.map_step_arcmin", self.map_step_arcmin, "a positive size in arcmin")

@@ -1,9 +1,9 @@
 """Posterior inference for the completeness (and purity) models.
 
 :func:`fit` chains :func:`fit_map` (the MAP point), :func:`laplace` (the Gaussian approximation
-there) and the posterior draws (:func:`importance_posterior`; NUTS in
-:func:`comest_bayes.bayes.nuts.nuts_posterior` where that fails; emcee in :func:`sample_posterior`, the
-reference), all in the model's unconstrained parameters.  The model contract, the
+there) and the posterior draws (:func:`importance_posterior`, once more with heavier tails where it fails;
+NUTS in :func:`comest_bayes.bayes.nuts.nuts_posterior` where that fails too; emcee in
+:func:`sample_posterior`, the reference), all in the model's unconstrained parameters.  The model contract, the
 sampler's convergence rules and the seeding: ``docs/bayesian.md`` ("Inference").
 """
 
@@ -22,7 +22,7 @@ from comest_bayes.errors import InputError
 from comest_bayes.io.jsonio import json_float
 from comest_bayes.bayes.psis import psis_log_weights
 from comest_bayes.bayes.nuts import nuts_posterior, supports_nuts
-from comest_bayes.bayes.samples import PosteriorSamples
+from comest_bayes.bayes.samples import SAMPLERS, PosteriorSamples
 from comest_bayes.seeding import Stream, int_seed_for, rng_for
 
 __all__ = [
@@ -719,9 +719,6 @@ def sample_posterior(model, lap: LaplaceResult, *, seed: int, nwalkers: int | No
 #: effective draws the Monte Carlo error of a 95% interval's end is about a tenth of the posterior sd.
 IS_MIN_ESS = 400.0
 
-#: The posterior samplers of :func:`fit` (``sampler``).
-SAMPLERS = ("auto", "importance", "nuts", "emcee")
-
 #: Longest emcee run (steps per walker) when importance sampling fails, ``sampler="auto"`` falls back and the
 #: model has no traceable density for NUTS.
 FALLBACK_MAX_STEPS = 5000
@@ -996,14 +993,38 @@ def importance_posterior(model, lap: LaplaceResult, *, seed: int, ndraws: int = 
 # --------------------------------------------------------------------------- all stages
 
 
-def _nuts(model, lap, seed: int, min_ess: float, note: str | None = None) -> PosteriorSamples:
-    """:func:`~comest_bayes.bayes.nuts.nuts_posterior`, with ``note`` first in its warnings and a warning if it
-    did not converge."""
+def _nuts(model, lap, seed: int, min_ess: float, note: str | None = None, stacklevel: int = 3) -> PosteriorSamples:
+    """:func:`~comest_bayes.bayes.nuts.nuts_posterior`, with ``note`` first in its warnings and a warning (at
+    ``stacklevel``: the caller of :func:`fit`) if it did not converge."""
     post = nuts_posterior(model, lap, seed=seed, min_ess=min_ess)
     if note:
         post.diagnostics.warnings.insert(0, note)
     if not post.diagnostics.converged:
-        warnings.warn(post.diagnostics.warnings[-1], ConvergenceWarning, stacklevel=3)
+        warnings.warn(post.diagnostics.warnings[-1], ConvergenceWarning, stacklevel=stacklevel)
+    return post
+
+
+def _after_importance_failed(model, lap, failed: str, *, seed: int, min_ess: float, **emcee_kw) -> PosteriorSamples:
+    """``fit(sampler="auto")``'s samplers after importance sampling failed (``failed``: its warning).
+
+    Importance sampling once more, from its own stream with a t of :data:`IS_RETRY_DF` degrees of freedom:
+    heavier tails pass on most of the posteriors whose one-sided tails the first proposal missed.  Where
+    that fails too, NUTS, which follows a curved ridge or a skewed tail with the gradient; a model without
+    a traceable density gets emcee instead, bounded by ``emcee_kw["max_steps"]`` (a chain shorter than
+    emcee's 50-tau rule asks for warns with its numbers).  All to ESS ``min_ess``; the first warning of
+    the result's diagnostics says what failed before it.
+    """
+    retry = importance_posterior(model, lap, seed=seed, min_ess=min_ess, df=IS_RETRY_DF,
+                                 stream=Stream.IMPORTANCE_TAILS)
+    rd = retry.diagnostics
+    if rd.converged:
+        rd.warnings.insert(0, failed + f"; sampled again from a t with {IS_RETRY_DF:g} degrees of freedom")
+        return retry
+    failed += f"; again from a t with {IS_RETRY_DF:g} degrees of freedom: k-hat = {rd.khat:.2f}, ESS = {rd.ess:.0f}"
+    if supports_nuts(model):
+        return _nuts(model, lap, seed, min_ess, note=failed + "; sampled with NUTS instead", stacklevel=4)
+    post = sample_posterior(model, lap, seed=seed, min_ess=min_ess, **emcee_kw)
+    post.diagnostics.warnings.insert(0, failed + "; sampled with emcee instead")
     return post
 
 
@@ -1058,30 +1079,9 @@ def fit(model, *, seed: int, sample: bool = True, nstarts: int = 6, min_ess: flo
         is_ess = min(min_ess, IS_MIN_ESS)
         post = importance_posterior(model, lap, seed=seed, min_ess=is_ess)
         if sampler == "auto" and not post.diagnostics.converged:
-            failed = post.diagnostics.warnings[-1]
-            # a second try with heavier tails: it passes on most of the posteriors whose one-sided tails the
-            # first proposal missed, for one more importance sampler (IS_RETRY_DF)
-            retry = importance_posterior(model, lap, seed=seed, min_ess=is_ess, df=IS_RETRY_DF,
-                                         stream=Stream.IMPORTANCE_TAILS)
-            rd = retry.diagnostics
-            if rd.converged:
-                rd.warnings.insert(0, failed + f"; sampled again from a t with {IS_RETRY_DF:g} degrees of freedom")
-                post = retry
-            else:
-                failed += (f"; again from a t with {IS_RETRY_DF:g} degrees of freedom: k-hat = {rd.khat:.2f}, "
-                           f"ESS = {rd.ess:.0f}")
-                if supports_nuts(model):
-                    # the posterior is far from the Laplace Gaussian (a curved ridge, a skewed tail): NUTS follows
-                    # it with the gradient, to the same ESS
-                    post = _nuts(model, lap, seed, is_ess, note=failed + "; sampled with NUTS instead")
-                else:
-                    # a model without a traceable density: bounded emcee, ESS 400 (as for importance sampling) and
-                    # at most FALLBACK_MAX_STEPS steps; a shorter chain than emcee's 50-tau rule asks for warns
-                    # with its numbers
-                    post = sample_posterior(model, lap, seed=seed, nwalkers=nwalkers, min_ess=is_ess,
-                                            max_steps=min(max_steps, FALLBACK_MAX_STEPS), chunk=chunk,
-                                            progress=progress, moves=moves)
-                    post.diagnostics.warnings.insert(0, failed + "; sampled with emcee instead")
+            post = _after_importance_failed(model, lap, post.diagnostics.warnings[-1], seed=seed, min_ess=is_ess,
+                                            nwalkers=nwalkers, max_steps=min(max_steps, FALLBACK_MAX_STEPS),
+                                            chunk=chunk, progress=progress, moves=moves)
         elif not post.diagnostics.converged:
             warnings.warn(post.diagnostics.warnings[-1], ConvergenceWarning, stacklevel=2)
     elif sample and sampler == "nuts":

@@ -697,9 +697,9 @@ class CompletenessModel:
         the step never leaves the parameter box), then symmetrised.  Its relative error is about
         2e-6 (:data:`HESSIAN_STEP`; the tests compare it with ``jax.hessian``), far below what a
         Laplace approximation, an evidence or a Newton step can feel, and it costs ``ndim``
-        gradients, about what the exact Hessian costs at run time.  The exact one (``jax.hessian``, forward over reverse)
-        would be a program of its own: compiling it took 40% of a first run's fitting
-        (docs/compute.md, "Compilation cache").  Where the log posterior is not finite at
+        gradients, about what the exact Hessian costs at run time.  The exact one (``jax.hessian``,
+        forward over reverse) would be a program of its own: compiling it took 40% of a first run's
+        fitting (docs/compute.md, "Compilation cache").  Where the log posterior is not finite at
         ``theta`` or at a step, the affected entries are NaN.
 
         The last few are remembered (keyed on the exact bits of ``theta`` and on ``tau``): a fit asks

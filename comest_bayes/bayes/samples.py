@@ -10,7 +10,11 @@ from dataclasses import dataclass
 
 import numpy as np
 
-__all__ = ["PosteriorSamples"]
+__all__ = ["PosteriorSamples", "SAMPLERS"]
+
+#: The posterior samplers of :func:`comest_bayes.bayes.inference.fit` and ``fit.sampler`` (named here, where
+#: the configuration can read them without importing JAX).
+SAMPLERS = ("auto", "importance", "nuts", "emcee")
 
 
 @dataclass
