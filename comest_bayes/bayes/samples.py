@@ -7,8 +7,10 @@ return it; it lives here so that neither sampler module imports the other's.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
-import numpy as np
+if TYPE_CHECKING:  # the annotations only: the configuration imports SAMPLERS, and `import comest_bayes` no numpy
+    import numpy as np
 
 __all__ = ["PosteriorSamples", "SAMPLERS"]
 
