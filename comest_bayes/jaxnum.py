@@ -17,12 +17,48 @@ jax.config.update("jax_enable_x64", True)
 
 import jax.numpy as jnp  # noqa: E402
 
-__all__ = ["jax", "jnp", "stored_jit", "export_folder"]
+__all__ = ["jax", "jnp", "jit", "stored_jit", "export_folder", "compiler_options"]
+
+#: XLA options of most of the completeness model's programs (:class:`stored_jit`) on the CPU.  These
+#: programs are small and a fit calls most of them a few hundred times, so on a machine's first run
+#: their compiles cost more than their evaluations.  On the demo's fit, XLA's default fusion
+#: emitters spent 5.3 CPU-s compiling its ten programs and the older emitters
+#: (``xla_cpu_use_fusion_emitters`` False) 3.4 CPU-s; a user's first ``comest-bayes demo`` fitted in
+#: 8.3 CPU-s instead of 10.7.  The programs run as fast with them, except the batched log
+#: posterior (+30% on 3072 cells): the programs evaluated thousands of times (that one, which emcee's
+#: walkers call, and NUTS's, 35-40% slower) keep XLA's defaults.  The numbers are the same: every
+#: program gave bit-identical outputs but the per-cell Jacobian (LOO, the width test), which differed
+#: by at most 7e-16 relative.  Measured by ``benchmarks/bench_compile_options.py``.
+CPU_COMPILER_OPTIONS = {"xla_cpu_use_fusion_emitters": False}
+_OPTIONS: list = []
 
 
 _FOLDERS: dict = {}
 #: False once serialization turned out to be unavailable in this process (then stored_jit is jax.jit).
 _EXPORT_WORKS = [True]
+
+
+def compiler_options() -> dict:
+    """The XLA options :func:`jit` compiles with: :data:`CPU_COMPILER_OPTIONS` on the CPU, if this jaxlib has them.
+
+    Tried once per process on a one-line program; a jaxlib that does not know an option (an older or
+    a newer one) or another backend gets no options, i.e. XLA's defaults.
+    """
+    if not _OPTIONS:
+        opts = dict(CPU_COMPILER_OPTIONS) if jax.default_backend() == "cpu" else {}
+        if opts:
+            try:
+                jax.jit(lambda x: x + 1.0, compiler_options=opts).lower(1.0).compile()
+            except Exception:  # TypeError: a jax.jit without compiler_options; XlaRuntimeError: an unknown option
+                opts = {}
+        _OPTIONS.append(opts)
+    return _OPTIONS[0]
+
+
+def jit(fn, **kwargs):
+    """``jax.jit`` with :func:`compiler_options`: for programs that compile for longer than they run."""
+    opts = compiler_options()
+    return jax.jit(fn, compiler_options=opts, **kwargs) if opts else jax.jit(fn, **kwargs)
 
 
 def export_folder():
@@ -58,16 +94,27 @@ class stored_jit:
         Files whose contents determine what ``fn`` computes.
     name : str, optional
         Label of the stored files (default ``fn.__name__``).
+    quick_compile : bool
+        Compile with :func:`compiler_options` (:func:`jit`); False for XLA's defaults, for a program
+        evaluated so often that its speed matters more than its compile.
     """
 
-    def __init__(self, fn, static_argnums=(), *, sources=(), name=None):
+    def __init__(self, fn, static_argnums=(), *, sources=(), name=None, quick_compile=True):
         self._fn = fn
+        self._jit_of = jit if quick_compile else jax.jit
         self._static = (static_argnums,) if isinstance(static_argnums, int) else tuple(static_argnums)
-        self._jit = jax.jit(fn, static_argnums=self._static)
+        self._plain = None
         self._sources = tuple(str(s) for s in sources)
         self._name = name or getattr(fn, "__name__", "fn")
         self._calls = {}
         self._digest = None
+
+    @property
+    def _jit(self):
+        """The program without storage (made on first use: :func:`compiler_options` needs the backend)."""
+        if self._plain is None:
+            self._plain = self._jit_of(self._fn, static_argnums=self._static)
+        return self._plain
 
     def _source_digest(self) -> str:
         if self._digest is None:
@@ -108,7 +155,7 @@ class stored_jit:
         digest = hashlib.sha256(text.encode()).hexdigest()[:40]
         path = folder / f"{self._name}-{digest}.jaxexport"
         try:
-            return jax.jit(export.deserialize(bytearray(path.read_bytes())).call)
+            return self._jit_of(export.deserialize(bytearray(path.read_bytes())).call)
         except Exception:  # not stored yet, or unreadable (a partial or foreign file): trace and store it again
             pass
         positions = [i for i in range(len(args)) if i not in self._static]
@@ -140,4 +187,4 @@ class stored_jit:
             os.replace(tmp, path)
         except OSError:  # a read-only cache: this process still uses the program it traced
             pass
-        return jax.jit(exported.call)
+        return self._jit_of(exported.call)

@@ -110,3 +110,37 @@ def test_stored_jit_without_serialization_is_plain_jit(tmp_path, monkeypatch):
     assert float(f(2.0, x, pair)) == plain and float(f(2.0, x, pair)) == plain
     assert jaxnum._EXPORT_WORKS == [False]
     assert not list((tmp_path / "exports").glob("g-*"))
+
+
+# --------------------------------------------------------------------------- compiler options
+
+def test_compiler_options_are_the_cpu_options_where_this_jaxlib_knows_them(monkeypatch):
+    monkeypatch.setattr(jaxnum, "_OPTIONS", [])
+    known = jaxnum.compiler_options()
+    if jax.default_backend() != "cpu":
+        assert known == {}
+        return
+    # the probe compiles a one-line program with the options: they are kept exactly when that works
+    try:
+        jax.jit(lambda v: v * 2.0, compiler_options=jaxnum.CPU_COMPILER_OPTIONS).lower(1.0).compile()
+        works = True
+    except Exception:
+        works = False
+    assert known == (jaxnum.CPU_COMPILER_OPTIONS if works else {})
+    # a program compiled with them computes what XLA's defaults compute, to rounding
+    f = _counting({"traces": 0})
+    x = np.linspace(0.0, 1.0, 101)
+    pair = (np.arange(101.0), jnp.asarray(0.5))
+    fast = float(jaxnum.jit(f, static_argnums=0)(2.0, x, pair))
+    assert fast == pytest.approx(float(jax.jit(f, static_argnums=0)(2.0, x, pair)), rel=1e-13)
+
+
+def test_an_option_this_jaxlib_does_not_know_falls_back_to_xla_defaults(monkeypatch):
+    # a future jaxlib may drop the option: the package must then compile as plain jax.jit, not fail
+    monkeypatch.setattr(jaxnum, "CPU_COMPILER_OPTIONS", {"xla_comest_bayes_no_such_option": True})
+    monkeypatch.setattr(jaxnum, "_OPTIONS", [])
+    assert jaxnum.compiler_options() == {}
+    f = _counting({"traces": 0})
+    x = np.linspace(0.0, 1.0, 7)
+    pair = (np.arange(7.0), jnp.asarray(0.5))
+    assert float(jaxnum.jit(f, static_argnums=0)(2.0, x, pair)) == float(jax.jit(f, static_argnums=0)(2.0, x, pair))

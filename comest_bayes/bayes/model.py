@@ -260,7 +260,8 @@ _jit_log_likelihood = jax.jit(
     lambda st, theta, data: jnp.where(_in_box(theta), _sanitize(_log_likelihood(st, theta, data)), -jnp.inf),
     static_argnums=0)
 _jit_value_and_grad = stored_jit(_value_and_grad, 0, sources=_SOURCES)
-_jit_log_prob_batch = stored_jit(_log_prob_batch, (0, 4), sources=_SOURCES)
+# evaluated at every step of emcee's walkers: XLA's default options, which run it faster (jaxnum)
+_jit_log_prob_batch = stored_jit(_log_prob_batch, (0, 4), sources=_SOURCES, quick_compile=False)
 _jit_cell_logs_batch = stored_jit(_cell_logs_batch, 0, sources=_SOURCES)
 _jit_prob_m50_batch = stored_jit(_prob_m50_batch, 0, sources=_SOURCES)
 
