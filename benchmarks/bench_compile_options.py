@@ -94,7 +94,8 @@ PROGRAMS = textwrap.dedent("""
     print(json.dumps(out))
 """)
 
-NUTS = PRELUDE + textwrap.dedent("""
+# the honesty benchmark's scene and seeds (bench_honesty.py, root seed 12), in a child after PRELUDE
+HONESTY_SETUP = PRELUDE + textwrap.dedent("""
     import json
     sys.path.insert(0, {bench!r})
     import bench_honesty as B
@@ -103,6 +104,9 @@ NUTS = PRELUDE + textwrap.dedent("""
     from comest_bayes.seeding import int_seed_for
     seed = 12
     sp = {{"shape": [512, 512], "gradient": 0.6, "chip_gap": True, "seed": int_seed_for(seed, "honesty", "scene")}}
+""")
+
+NUTS = HONESTY_SETUP + textwrap.dedent("""
     res = []
     for name, n, rep in {tables!r}:
         truths = B.truth_setup([name], B._scene(sp))
@@ -113,15 +117,7 @@ NUTS = PRELUDE + textwrap.dedent("""
     print(json.dumps(res))
 """)
 
-HONESTY = PRELUDE + textwrap.dedent("""
-    import json, time
-    sys.path.insert(0, {bench!r})
-    import bench_honesty as B
-    from comest_bayes.pipeline import runtime
-    runtime.configure(threads=1)
-    from comest_bayes.seeding import int_seed_for
-    seed = 12
-    sp = {{"shape": [512, 512], "gradient": 0.6, "chip_gap": True, "seed": int_seed_for(seed, "honesty", "scene")}}
+HONESTY = HONESTY_SETUP + textwrap.dedent("""
     names = ["skew_faint", "skew_bright", "long_tail", "two_populations", "plateau_slow", "width_varies", "logistic"]
     truths = B.truth_setup(names, B._scene(sp))
     res = {{}}
