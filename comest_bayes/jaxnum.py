@@ -23,12 +23,12 @@ __all__ = ["jax", "jnp", "jit", "stored_jit", "export_folder", "compiler_options
 #: programs are small and a fit calls most of them a few hundred times, so on a machine's first run
 #: their compiles cost more than their evaluations.  On the demo's fit, XLA's default fusion
 #: emitters spent 5.3 CPU-s compiling its ten programs and the older emitters
-#: (``xla_cpu_use_fusion_emitters`` False) 3.4 CPU-s; a user's first ``comest-bayes demo`` fitted in
-#: 8.3 CPU-s instead of 10.7.  The programs run as fast with them, except the batched log
-#: posterior (+30% on 3072 cells): the programs evaluated thousands of times (that one, which emcee's
-#: walkers call, and NUTS's, 35-40% slower) keep XLA's defaults.  The numbers are the same: every
-#: program gave bit-identical outputs but the per-cell Jacobian (LOO, the width test), which differed
-#: by at most 7e-16 relative.  Measured by ``benchmarks/bench_compile_options.py``.
+#: (``xla_cpu_use_fusion_emitters`` False) 3.5 CPU-s; a user's first ``comest-bayes demo`` fitted in
+#: 8.1-9.0 CPU-s instead of 10.4-10.7, and later runs as fast as before.  Two kinds of program keep
+#: XLA's defaults, which run them faster: the batched log posterior (20-30% faster at 768 cells),
+#: which emcee's walkers call at every step, and NUTS's (12-37% faster).  The numbers are the same:
+#: every program gave bit-identical outputs but the per-cell Jacobian (LOO, the width test), which
+#: differed by at most 7e-16 relative.  Measured by ``benchmarks/bench_compile_options.py``.
 CPU_COMPILER_OPTIONS = {"xla_cpu_use_fusion_emitters": False}
 _OPTIONS: list = []
 
@@ -82,7 +82,8 @@ class stored_jit:
     ``<compilation cache>/exports`` and later processes deserialize it instead of tracing it: the
     same StableHLO, hence the same compiled code and the same numbers.  The file name holds a digest
     of ``sources`` (the files whose code is traced), of the JAX version and of the call's signature,
-    so a changed source never loads an old program.  Without the compilation cache it is ``jax.jit``.
+    so a changed source never loads an old program.  Without the compilation cache it is :func:`jit`
+    (``jax.jit`` with ``quick_compile`` False).
 
     Parameters
     ----------
