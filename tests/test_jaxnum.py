@@ -144,3 +144,20 @@ def test_an_option_this_jaxlib_does_not_know_falls_back_to_xla_defaults(monkeypa
     x = np.linspace(0.0, 1.0, 7)
     pair = (np.arange(7.0), jnp.asarray(0.5))
     assert float(jaxnum.jit(f, static_argnums=0)(2.0, x, pair)) == float(jax.jit(f, static_argnums=0)(2.0, x, pair))
+
+
+def test_the_options_reach_xla_through_jit_and_stored_jit_but_not_with_quick_compile_off(tmp_path, monkeypatch):
+    # an option XLA rejects, set as if the probe had accepted it: a program that passes it to XLA's compile
+    # fails, one that does not (quick_compile=False: XLA's defaults) computes as jax.jit does
+    monkeypatch.setattr(jaxnum, "_OPTIONS", [{"xla_comest_bayes_no_such_option": True}])
+    x = np.linspace(0.0, 1.0, 7)
+    pair = (np.arange(7.0), jnp.asarray(0.5))
+    plain = float(jax.jit(_counting({"traces": 0}), static_argnums=0)(2.0, x, pair))
+    with pytest.raises(Exception, match="xla_comest_bayes_no_such_option"):
+        jaxnum.jit(_counting({"traces": 0}), static_argnums=0)(2.0, x, pair)
+    for folder in (None, tmp_path / "exports"):  # the unstored and the stored path
+        monkeypatch.setattr(jaxnum, "export_folder", lambda folder=folder: folder)
+        with pytest.raises(Exception, match="xla_comest_bayes_no_such_option"):
+            stored_jit(_counting({"traces": 0}), 0, sources=[__file__], name="q")(2.0, x, pair)
+        f = stored_jit(_counting({"traces": 0}), 0, sources=[__file__], name="d", quick_compile=False)
+        assert float(f(2.0, x, pair)) == plain
