@@ -198,7 +198,6 @@ def main(argv=None) -> int:
                     result["programs"].setdefault(name, {}).setdefault(key, []).append(rec)
         if not args.skip_demo:
             program_table(result)
-
         if args.honesty:
             # the honesty benchmark's first replicates at 3k, each setting in its own process (after one
             # process that fills its cache), alternating: the fits' CPU with a warm cache
