@@ -268,6 +268,9 @@ _jit_prob_m50_batch = stored_jit(_prob_m50_batch, 0, sources=_SOURCES)
 #: log_prob_batch vectorises over at most this many (walker, cell) pairs at once.
 BATCH_ELEMENTS = 1 << 20
 
+#: Predictions (:meth:`CompletenessModel.prob`, ``m50``) evaluate the draws in blocks of this many.
+PREDICT_DRAWS = 256
+
 #: From this many cells on, :func:`padded_size` grows in quarter steps (of the power of two below).
 LARGE_PAD = 4096
 
@@ -849,10 +852,28 @@ class CompletenessModel:
         t = np.asarray(theta, dtype=np.float64)
         single = t.ndim == 1
         t2 = self.full(self._thetas(t[None, :] if single else t))
-        basis = jnp.asarray(self.basis(cov))
-        f, m50 = _jit_prob_m50_batch(self._st, jnp.asarray(t2), jnp.asarray(cov.m), jnp.asarray(cov.depth),
-                                     jnp.asarray(cov.size), basis)
-        f, m50 = np.asarray(f), np.asarray(m50)
+        # padded to few compiled shapes (the rows repeat the last ones; each draw and row is computed
+        # alone, so the padding changes no number): draws in blocks of PREDICT_DRAWS (fewer draws to
+        # a power of two), rows to padded_size.  Without it every new (draws, rows) shape of a query,
+        # a check or a map costs a trace and a compile (about 0.3 CPU-s) or a cache load.
+        n, s = len(cov.m), len(t2)
+        if n == 0:
+            empty = np.empty((s, 0))
+            return (empty[0], empty[0]) if single else (empty, empty.copy())
+        rows = padded_size(n)
+
+        def pad(x, size):
+            x = np.asarray(x, np.float64)
+            return jnp.asarray(np.concatenate([x, np.repeat(x[-1:], size - len(x), axis=0)]) if len(x) < size else x)
+
+        args = tuple(pad(x, rows) for x in (cov.m, cov.depth, cov.size, self.basis(cov)))
+        block = PREDICT_DRAWS if s >= PREDICT_DRAWS else 1 << max(0, (s - 1).bit_length())
+        f, m50 = np.empty((s, n)), np.empty((s, n))
+        for start in range(0, s, block):
+            part = t2[start:start + block]
+            nb = len(part)
+            fb, mb = _jit_prob_m50_batch(self._st, pad(part, block), *args)
+            f[start:start + nb], m50[start:start + nb] = np.asarray(fb)[:nb, :n], np.asarray(mb)[:nb, :n]
         return (f[0], m50[0]) if single else (f, m50)
 
     def prob(self, theta, cov: Covariates) -> np.ndarray:

@@ -297,6 +297,47 @@ def test_cell_loglik_reproduces_the_likelihood_in_chunks():
     np.testing.assert_allclose(f, np.exp(cl[..., 0]), rtol=1e-12)
 
 
+def test_predictions_run_through_few_padded_shapes_and_equal_each_draw_alone(monkeypatch):
+    """prob / m50 pad the draws (blocks of PREDICT_DRAWS, fewer to a power of two) and the rows
+    (padded_size): a shape check's 200 draws and an m50 map's 500 draws of 729 cells call one compiled
+    shape, and every value equals the draw and row computed alone (the analytic logistic)."""
+    from comest_bayes.bayes import model as M
+
+    cov, y = synthetic(300, 23)
+    model = CompletenessModel("logistic_depth", uncompressed(cov, y))
+    shapes = []
+    inner = M._jit_prob_m50_batch
+
+    def recording(st, thetas, *args):
+        shapes.append((thetas.shape[0], args[0].shape[0]))  # (draws, rows) of the full vectors
+        return inner(st, thetas, *args)
+
+    monkeypatch.setattr(M, "_jit_prob_m50_batch", recording)
+    rng = np.random.default_rng(24)
+    p = dict(m50_0=24.0, w=0.2, A=0.95, floor=0.03, beta_depth=0.8)
+    base = model.inverse_transform(p)
+    thetas = base + rng.normal(0, 0.02, (500, model.ndim))
+    thetas[:, 0] = 24.0 + rng.normal(0, 0.05, 500)  # m50_0 varies from draw to draw
+    d = rng.normal(0, 0.2, 729)
+    at = Covariates.make(rng.uniform(22.5, 25.5, 729), depth=d)
+    f = model.prob(thetas, at)
+    f200 = model.prob(thetas[:200], Covariates.make(at.m[:700], depth=d[:700]))
+    m50 = model.m50(thetas[:3], at)
+    assert f.shape == (500, 729) and f200.shape == (200, 700) and m50.shape == (3, 729)
+    assert shapes[:3] == [(256, 768)] * 3  # 500 draws: two blocks; 200 draws: one
+    assert shapes[3] == (4, 768)            # 3 draws: a block of 4
+    tr = model.transform(thetas)
+    m50_true = tr["m50_0"][:, None] + tr["beta_depth"][:, None] * d[None, :]
+    z = (m50_true - at.m[None, :]) / tr["w"][:, None]
+    want = tr["floor"][:, None] + (tr["A"] - tr["floor"])[:, None] * special.expit(z)
+    np.testing.assert_allclose(f, want, rtol=1e-12, atol=1e-15)
+    np.testing.assert_allclose(f200, want[:200, :700], rtol=1e-12, atol=1e-15)
+    np.testing.assert_allclose(m50, m50_true[:3], rtol=1e-14)
+    one = model.prob(thetas[7], Covariates.make(at.m[5:6], depth=d[5:6]))
+    assert one.shape == (1,) and one[0] == pytest.approx(want[7, 5], rel=1e-12)
+    assert model.prob(thetas[:2], Covariates.make(np.array([]))).shape == (2, 0)
+
+
 def test_footprint_args_are_reused_for_the_same_cells_and_rebuilt_for_new_ones():
     """The averaging programs get the footprint's device arrays once per footprint, and a new
     footprint (other arrays) is never served the previous one's cells."""
