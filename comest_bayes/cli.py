@@ -210,8 +210,9 @@ def build_parser() -> argparse.ArgumentParser:
     fit.add_argument("--kind", default="injections", help="label of the injected population (default injections)")
     fit.add_argument("--model", default="auto", help="model spec name or TOML path, or auto (default)")
     for name, default in (("mag", "mag"), ("detected", "detected"), ("x", "x"), ("y", "y"), ("noise", "noise")):
-        fit.add_argument(f"--{name}-column", default=default, metavar="NAME",
-                         help=f"column of the {name} (default {default})")
+        fit.add_argument(f"--{name}-column", default=None, metavar="NAME",
+                         help=f"column of the {name} (default {default}"
+                              + (")" if name in ("mag", "detected") else "; optional, but a name you give must exist)"))
     fit.add_argument("--noise-map", default=None, metavar="FITS",
                      help="detection noise map of the image: the image average then covers every unmasked pixel")
     fit.add_argument("--mask", default=None, metavar="FITS", help="bad-pixel mask of the image (non-zero = bad)")

@@ -92,6 +92,17 @@ def test_fit_names_a_missing_column_before_writing_anything(outcome_files, tmp_p
     assert main(["fit", str(root / "balrog_like.fits"), "--out", str(out), "--mag-column", "TRUE_MAG",
                  "--detected-column", "FOUND", "--image-shape", "12"]) == 2
     assert "NY,NX" in capsys.readouterr().err and not out.exists()
+    good = ["fit", str(root / "balrog_like.fits"), "--out", str(out), "--mag-column", "TRUE_MAG",
+            "--detected-column", "FOUND"]
+    # optional columns are optional only under their default names: a name given must exist
+    assert main(good + ["--noise-column", "sigma"]) == 2
+    err = capsys.readouterr().err
+    assert "no column(s) ['sigma']" in err and "--noise-column" in err and not out.exists()
+    assert main(good + ["--x-column", "XIMAGE"]) == 2  # no 'y' column: positions need both
+    assert "--y-column" in capsys.readouterr().err and not out.exists()
+    # an outcome that is not 0/1 is refused before the output folder is made
+    assert main(good[:-1] + ["SKYRMS"]) == 2
+    assert "must be boolean or 0/1" in capsys.readouterr().err and not out.exists()
 
 
 def test_fit_without_maps_averages_over_the_injections_own_footprint(outcome_files, tmp_path):

@@ -17,7 +17,7 @@ import numpy as np
 from comest_bayes.errors import InputError
 from comest_bayes.bayes.spec import ModelSpec, load_spec, resolve_candidates
 
-__all__ = ['image_coordinate', 'depth_covariate', 'Covariates', 'BinomialData', 'covariates_from_outcomes', 'compress', 'compress_for', 'uncompressed', 'covariates_needed', 'covariate_warnings']
+__all__ = ['image_coordinate', 'depth_covariate', 'Covariates', 'BinomialData', 'covariates_from_outcomes', 'outcome_flags', 'compress', 'compress_for', 'uncompressed', 'covariates_needed', 'covariate_warnings']
 
 _COVARIATE_GROUPS = ("m", "depth", "uv", "size")
 
@@ -171,6 +171,21 @@ def _colnames(table) -> list[str]:
                      f"got {type(table).__name__}.")
 
 
+def outcome_flags(values, column: str = "detected") -> np.ndarray:
+    """The outcome column as booleans: a boolean column, or numbers that are all 0 or 1 (else :class:`InputError`)."""
+    raw = np.asarray(values)
+    if raw.dtype.kind == "b":
+        return raw.astype(bool)
+    try:
+        vals = raw.astype(np.float64)
+    except (TypeError, ValueError):
+        raise InputError(f"column {column!r} must be boolean or 0/1, got dtype {raw.dtype}.") from None
+    if not np.all(np.isin(vals, (0.0, 1.0))):
+        raise InputError(f"column {column!r} must be boolean or 0/1; found other values "
+                         f"(e.g. {vals[~np.isin(vals, (0.0, 1.0))][:3].tolist()}).")
+    return vals.astype(bool)
+
+
 def covariates_from_outcomes(outcomes, *, image_shape, sigma_ref: float | None = None,
                              hlr_ref: float | None = None, mag_column: str = "mag",
                              outcome_column: str = "detected") -> tuple[Covariates, np.ndarray, dict]:
@@ -231,18 +246,7 @@ def covariates_from_outcomes(outcomes, *, image_shape, sigma_ref: float | None =
     if n_input == 0:
         raise InputError("outcome table is empty: there is nothing to fit.")
     mag = np.asarray(outcomes[mag_column], dtype=np.float64)
-    raw = np.asarray(outcomes[outcome_column])
-    if raw.dtype.kind == "b":
-        det = raw.astype(bool)
-    else:
-        try:
-            vals = raw.astype(np.float64)
-        except (TypeError, ValueError):
-            raise InputError(f"column {outcome_column!r} must be boolean or 0/1, got dtype {raw.dtype}.") from None
-        if not np.all(np.isin(vals, (0.0, 1.0))):
-            raise InputError(f"column {outcome_column!r} must be boolean or 0/1; found other values "
-                             f"(e.g. {vals[~np.isin(vals, (0.0, 1.0))][:3].tolist()}).")
-        det = vals.astype(bool)
+    det = outcome_flags(outcomes[outcome_column], outcome_column)
 
     has_xy = "x" in names and "y" in names
     keep = np.isfinite(mag)

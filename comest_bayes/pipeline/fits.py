@@ -21,7 +21,7 @@ from astropy.table import Table
 
 from comest_bayes.bayes.fit import MIN_CLASS, FitEntry, fit_kind, purity_outcomes
 from comest_bayes.bayes.model import padded_size, padding_floor
-from comest_bayes.bayes.outcomes import compress_for, covariates_from_outcomes
+from comest_bayes.bayes.outcomes import compress_for, covariates_from_outcomes, outcome_flags
 from comest_bayes.bayes.spec import load_spec
 from comest_bayes.config import RunConfig
 from comest_bayes.errors import InputError
@@ -201,8 +201,9 @@ def fit_outcome_file(path, out, *, kind: str = "injections", model: str = "auto"
         A spec name or path, or ``auto`` (the selection).
     columns : dict, optional
         Column names for ``mag``, ``detected``, ``x``, ``y``, ``noise``
-        (defaults :data:`OUTCOME_COLUMNS`); ``x``, ``y`` and ``noise`` may be
-        absent from the table.
+        (defaults :data:`OUTCOME_COLUMNS`; None keeps the default).  ``x``,
+        ``y`` and ``noise`` are optional under their default names; a name
+        given here must be in the table.
     noise_map, mask : str or Path, optional
         FITS maps of the detection noise and bad pixels (non-zero = bad) of
         the image: the image average then runs over every unmasked pixel.
@@ -224,7 +225,11 @@ def fit_outcome_file(path, out, *, kind: str = "injections", model: str = "auto"
 
 
     path, out = Path(path), Path(out)
-    cols = dict(OUTCOME_COLUMNS, **(columns or {}))
+    named = {key: value for key, value in (columns or {}).items() if value is not None}
+    unknown = sorted(set(named) - set(OUTCOME_COLUMNS))
+    if unknown:
+        raise InputError(f"unknown column role(s) {unknown}; the roles are {sorted(OUTCOME_COLUMNS)}.")
+    cols = dict(OUTCOME_COLUMNS, **named)
     # -- validate everything before writing anything
     if not path.is_file():
         raise InputError(f"outcome table {str(path)!r} does not exist.")
@@ -232,17 +237,23 @@ def fit_outcome_file(path, out, *, kind: str = "injections", model: str = "auto"
         raw = Table.read(path)
     except Exception as exc:  # astropy raises many types for unreadable tables
         raise InputError(f"outcome table {str(path)!r} cannot be read: {exc}") from None
-    missing = [cols[c] for c in ("mag", "detected") if cols[c] not in raw.colnames]
+    # mag and detected are needed; x, y and noise are optional, but a name given for one must exist
+    required = [c for c in OUTCOME_COLUMNS if c in ("mag", "detected") or c in named]
+    missing = [c for c in required if cols[c] not in raw.colnames]
     if missing:
-        raise InputError(f"outcome table {str(path)!r} has no column(s) {missing}; its columns are {raw.colnames}. "
-                         "Name yours with --mag-column / --detected-column.")
+        raise InputError(f"outcome table {str(path)!r} has no column(s) {[cols[c] for c in missing]}; its columns "
+                         f"are {raw.colnames}. Name yours with " + " / ".join(f"--{c}-column" for c in missing) + ".")
+    if ("x" in named) != ("y" in named) and not (cols["x"] in raw.colnames and cols["y"] in raw.colnames):
+        raise InputError(f"positions need both an x and a y column; {cols['x']!r} and {cols['y']!r} are not both "
+                         "in the table: name both with --x-column and --y-column.")
     if len(raw) == 0:
         raise InputError(f"outcome table {str(path)!r} has no rows.")
     if out.exists() and (not out.is_dir() or any(out.iterdir())):
         raise InputError(f"output folder {str(out)!r} exists and is not empty; give a new or empty folder "
                          "(nothing is overwritten).")
     load_spec(model)
-    table = Table({"mag": np.asarray(raw[cols["mag"]], float), "detected": np.asarray(raw[cols["detected"]])})
+    table = Table({"mag": np.asarray(raw[cols["mag"]], float),
+                   "detected": outcome_flags(raw[cols["detected"]], cols["detected"])})
     has_xy = cols["x"] in raw.colnames and cols["y"] in raw.colnames
     if has_xy:
         table["x"] = np.asarray(raw[cols["x"]], float)
