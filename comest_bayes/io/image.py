@@ -488,6 +488,10 @@ def _cube_advice(path, shape) -> str:
             f"(d[0] is the first of the {shape[0]} planes)")
 
 
+#: The command-line option that chooses the HDU of each input file.
+_HDU_OPTION = {"image": "--hdu", "weight": "--weight-hdu", "mask": "--mask-hdu"}
+
+
 def _pick_hdu(hdul, hdu, path, what):
     if hdu is None:
         for i, h in enumerate(hdul):
@@ -501,7 +505,7 @@ def _pick_hdu(hdul, hdu, path, what):
                              f"shape {shape}. {_cube_advice(path, shape)}.")
         raise InputError(
             f"{what} file {str(path)!r} holds no 2-D image in any of its {len(hdul)} HDUs; "
-            f"is it a table? Pass --hdu to choose an image HDU."
+            f"is it a table? Pass {_HDU_OPTION.get(what, '--hdu')} to choose an image HDU."
         )
     if not (0 <= hdu < len(hdul)):
         raise InputError(f"{what} file {str(path)!r} has {len(hdul)} HDUs (0-{len(hdul) - 1}); got hdu={hdu}.")
@@ -511,9 +515,12 @@ def _pick_hdu(hdul, hdu, path, what):
         if h.is_image and shape is not None and len(shape) > 2:
             raise InputError(f"HDU {hdu} of {what} file {str(path)!r} is a {len(shape)}-D cube of shape {shape}, "
                              f"not a 2-D image. {_cube_advice(path, shape)}.")
+        images = [i for i, other in enumerate(hdul) if _plane_shape(other) is not None]
+        where = (f"HDU {images[0]} holds one" if len(images) == 1 else
+                 f"HDUs {', '.join(map(str, images))} hold one" if images else "no HDU of it holds one")
         raise InputError(
-            f"HDU {hdu} of {what} file {str(path)!r} is not a 2-D image (data shape {shape}); "
-            f"pick another with --hdu."
+            f"HDU {hdu} of {what} file {str(path)!r} is not a 2-D image (data shape {shape}); {where}: "
+            f"pick another with {_HDU_OPTION.get(what, '--hdu')}."
         )
     return hdu
 

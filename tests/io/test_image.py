@@ -338,6 +338,18 @@ def test_weight_and_mask_in_chosen_hdus(write_fits):
     assert image.mask.sum() == 1 and image.mask[1, 1]
 
 
+def test_a_weight_or_mask_hdu_without_an_image_names_its_own_option_and_the_image_hdus(write_fits, tmp_path):
+    # as a DECam community-pipeline mask: an empty primary HDU, the mask in HDU 1
+    mpath = tmp_path / "ood.fits"
+    fits.HDUList([fits.PrimaryHDU(), fits.ImageHDU(data=np.zeros(SHAPE, np.int16))]).writeto(mpath)
+    img = write_fits("img.fits", noise_image(), wcs_header(zp=25.0))
+    with pytest.raises(InputError, match=r"HDU 0 of mask file .* HDU 1 holds one: pick another with --mask-hdu\."):
+        load_image(img, mask=mpath, mask_hdu=0)
+    with pytest.raises(InputError, match=r"pick another with --weight-hdu\."):
+        load_image(img, weight=mpath, weight_hdu=0)
+    assert load_image(img, mask=mpath, mask_hdu=1).mask.sum() == 0
+
+
 def test_load_image_never_modifies_its_inputs(write_fits):
     data = noise_image()
     data[2, 2] = np.nan  # load_image zeroes this pixel in memory, never on disk
