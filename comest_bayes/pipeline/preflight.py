@@ -454,19 +454,30 @@ def check_injection_count(*, shape, mask, pixel_scale: float, fwhm_pix: float | 
             raise InputError(
                 f"no injection can be usable on this {nx}x{ny} image: {stamp}, and every pixel at least {half} px "
                 f"from the edges, where a stamp fits, is masked. Check the mask and --mask-bits.")
-        cap = ""
-        if b.placeable < b.requested and b.sized:
-            cap = (f"; only about {b.placeable:.0f} fit, each galaxy kept its own separation and its whole stamp "
-                   f"on the image")
-        elif b.placeable < b.requested:
-            cap = (f"; only about {b.placeable:.0f} fit at the minimum separation of {b.min_sep_pix:.1f} px, "
-                   f"so lower injection.min_sep")
+        choice = densities.get(kind)
+        # the automatic density already lowered to what the placement holds: a higher density cannot help
+        held = (isinstance(choice, DensityChoice) and choice.source == "automatic"
+                and math.isfinite(choice.hold_cap) and choice.per_realization >= 0.999 * choice.hold_cap)
+        need = math.ceil(MIN_USABLE_INJECTIONS / b.usable_per_realization) if b.usable_per_realization > 0 else None
+        nsims_hint = f"--nsims to {need} or more" if need else "--nsims"
+        if b.placeable < b.requested or held:
+            fit = min(b.placeable, b.requested)
+            keep = ("each galaxy keeping its own separation and its whole stamp on the image" if b.sized else
+                    f"at the minimum separation of {b.min_sep_pix:.1f} px between injections")
+            why = (f"only about {fit:.1f} fit on this {nx}x{ny} image per realization, {keep}"
+                   + (" (the automatic density is already that)" if held else f", of {b.requested:.1f} asked for"))
+            advice = (f"Raise {nsims_hint}" + ("" if b.sized else ", or lower injection.min_sep")
+                      + "; a higher --density cannot help.")
+        else:
+            why = f"{b.requested:.1f} are asked for per realization at {b.density:.4g} per arcmin^2"
+            advice = f"Raise {nsims_hint} or --density, or use a larger image."
+        edges = ""
+        if b.inner_fraction < 0.9:
+            edges = (f"; {stamp}, and only {100 * b.inner_fraction:.0f}% of the pixels are unmasked and at least "
+                     f"{half} px from the edges")
         raise InputError(
-            f"too few usable {kind} injections expected: {total:.1f} over {nsims} realization(s) "
-            f"({b.requested:.1f} asked for per realization at {b.density:.4g} per arcmin^2{cap}; "
-            f"{stamp}, and only {100 * b.inner_fraction:.0f}% of the pixels are unmasked and at least {half} px "
-            f"from the edges), and at least {MIN_USABLE_INJECTIONS} are needed. Raise --nsims or --density, or use "
-            f"a larger image.")
+            f"too few usable {kind} injections expected: {total:.1f} over {nsims} realization(s) ({why}{edges}), "
+            f"and at least {MIN_USABLE_INJECTIONS} are needed. {advice}")
     return budgets
 
 

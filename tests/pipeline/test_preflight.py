@@ -134,6 +134,32 @@ def test_sized_galaxies_are_budgeted_as_all_usable():
     assert b.usable_per_realization == pytest.approx(3.0)
 
 
+def test_too_few_usable_injections_names_the_limit_that_binds_and_the_realizations_that_would_do():
+    from comest_bayes.config import InjectionConfig
+    from comest_bayes.errors import InputError
+    from comest_bayes.pipeline.preflight import check_injection_count
+
+    # the JWST cutout's geometry: the automatic density is already what the placement holds (3 galaxies per
+    # realization), so only more realizations help: 10 usable need ceil(10 / 3) = 4
+    inj = InjectionConfig(kinds=("buldisk",), nsims=3)
+    with pytest.raises(InputError) as err:
+        check_injection_count(shape=(640, 640), mask=None, pixel_scale=0.0308, fwhm_pix=2.46, injection=inj)
+    msg = str(err.value)
+    assert "only about 3.0 fit" in msg and "the automatic density is already that" in msg
+    assert "Raise --nsims to 4 or more; a higher --density cannot help." in msg
+    assert "stamp" in msg and "edges" not in msg  # every pixel is usable: no word on stamps and edges
+    check_injection_count(shape=(640, 640), mask=None, pixel_scale=0.0308, fwhm_pix=2.46,
+                          injection=InjectionConfig(kinds=("buldisk",), nsims=4))
+    # a density the user set low on a small image: 4 point sources per realization on 0.36 arcmin^2, of which
+    # the stamps of about 80% lie inside the edges: 9.7 usable over 3 realizations; --density helps too
+    inj = InjectionConfig(kinds=("point",), nsims=3, density=4.0 / 0.36)
+    with pytest.raises(InputError) as err:
+        check_injection_count(shape=(180, 180), mask=None, pixel_scale=0.2, fwhm_pix=3.0, injection=inj)
+    msg = str(err.value)
+    assert "4.0 are asked for per realization" in msg and "px from the edges" in msg
+    assert msg.endswith("Raise --nsims to 4 or more or --density, or use a larger image.")
+
+
 JWST = "/work/shared/data/jwst/jwst_nircam_f200w_a2744_glass_sci.fits"
 
 
