@@ -73,6 +73,10 @@ class Stream:
     #: ``bayes.inference``: the starting points and the random keys of the NUTS chains.
     NUTS = "nuts"
 
+    # -- binned ratios, from the run's root seed
+    #: ``ratios.binned``: the drawn curves whose first crossings give the binned m50's spread.
+    CROSSING = "crossing"
+
     # -- number counts (lf), from the seed given to lf.model.fit_counts
     #: ``lf.model``: the starting points of an LF model.
     LF_INITIAL = "lf-initial"

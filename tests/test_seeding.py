@@ -62,7 +62,7 @@ PUBLISHED_STREAMS = {
     "SOURCEFREE": "sourcefree", "INJECT": "inject", "RENDER": "render", "ADAPTIVE": "adaptive", "DESIGN": "design",
     "DESIGN_FIT": "design-fit", "FIT": "fit", "FOOTPRINT": "footprint", "SELECT": "select", "TAU": "tau",
     "LAPLACE_DRAWS": "laplace-draws", "MAP_STARTS": "map-starts", "WALKERS": "walkers", "EMCEE": "emcee",
-    "IMPORTANCE": "importance", "IMPORTANCE_TAILS": "importance-tails", "NUTS": "nuts", "LF_INITIAL": "lf-initial", "LF": "lf", "LF_FIXED": "fixed", "LF_JOINT": "joint",
+    "IMPORTANCE": "importance", "IMPORTANCE_TAILS": "importance-tails", "NUTS": "nuts", "CROSSING": "crossing", "LF_INITIAL": "lf-initial", "LF": "lf", "LF_FIXED": "fixed", "LF_JOINT": "joint",
     "LF_MARGINAL": "marginal", "LF_MARGINAL_DRAWS": "marginal-draws", "ANALYTIC_NOISE": "analytic-noise",
     "DEMO": "demo", "DEMO_GALAXIES": "galaxies", "DEMO_STARS": "stars", "DEMO_BRIGHT_STARS": "bright_stars",
     "DEMO_NOISE": "noise",

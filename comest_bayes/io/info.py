@@ -89,7 +89,8 @@ def format_info(info: dict) -> str:
                      f"{c.get('realizations', 0)} realizations, {c.get('false', 0)} false detections")
         sd = k.get("m50_binned_sd")
         lines.append(f"  m50 binned: {_mag(k.get('m50_binned'))}"
-                     + (f" +- {sd:.3f} (binomial noise of its two bins)" if sd is not None else ""))
+                     + (f" +- {sd:.3f} (spread of the first crossing under the bins' binomial noise)"
+                        if sd is not None else ""))
         m = k.get("model")
         if m and m.get("skipped"):
             lines.append(f"  completeness model: skipped ({m['skipped']})")

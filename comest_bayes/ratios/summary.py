@@ -85,7 +85,7 @@ def kind_summary(merged: "MergedCatalogs", edges: np.ndarray, config: RunConfig,
     }
     out = {"counts": counts, "mag_range": [float(edges[0]), float(edges[-1])], "binned": binned,
            "m50_binned": _none_if_nan(R.magnitude_at(b["completeness"], 0.5)),
-           "m50_binned_sd": _none_if_nan(R.magnitude_at_sd(b["completeness"], 0.5))}
+           "m50_binned_sd": _none_if_nan(R.magnitude_at_sd(b["completeness"], 0.5, seed=config.seed))}
     if maps_file is not None:
         out["maps"] = {"file": maps_file, "mag_edges": [float(v) for v in map_edges],
                        "bin_arcmin": config.ratios.map_bin_arcmin}

@@ -102,7 +102,7 @@ def test_published_workflow_numbers_are_sensible(published):
     assert np.all(near_mask[fy, fx])
     m50 = s["kinds"]["point"]["m50_binned"]
     assert m5 - 1.5 < m50 < m5 + 1.0
-    assert 0.0 < s["kinds"]["point"]["m50_binned_sd"] < 0.2  # the binomial noise of its two bins, mag
+    assert 0.0 < s["kinds"]["point"]["m50_binned_sd"] < 0.2  # the spread of its first crossing, mag
 
     # Bulge+disk galaxies on the BnB image: bright ones are lost only where a kept bright-and-big
     # source sits (pixels where the BnB image differs from the SFI, grown by 1 FWHM).  "Bright" is

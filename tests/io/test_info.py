@@ -76,7 +76,7 @@ def test_info_prints_a_finished_runs_results_and_writes_nothing(finished_run, ca
     assert "3 realizations per kind; 15 per arcmin^2; model auto; seed 7" in out
     assert "point: 700/900 usable injections detected in 3 realizations, 3 false detections" in out
     # the sd where the summary has one (point), none where it does not (buldisk: a run before the sd existed)
-    assert "m50 binned: 23.97 +- 0.007 (binomial noise of its two bins)" in out
+    assert "m50 binned: 23.97 +- 0.007 (spread of the first crossing under the bins' binomial noise)" in out
     assert "m50 binned: 23.26\n" in out
     assert "completeness model: spline_depth (chosen among logistic, spline_depth)" in out
     assert "m50: 23.957 [68%: 23.949, 23.964] [95%: 23.942, 23.971]" in out
