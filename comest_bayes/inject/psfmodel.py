@@ -12,7 +12,7 @@ from astropy.io import fits
 from comest_bayes.config import InjectionConfig, PSF_KINDS
 from comest_bayes.errors import InputError, InputFileError
 
-__all__ = ['make_psf', 'read_psf_image', 'psf_half_light_radius_pix', 'DEFAULT_MOFFAT_BETA']
+__all__ = ['make_psf', 'read_psf_image', 'psf_image_fwhm_pix', 'psf_half_light_radius_pix', 'DEFAULT_MOFFAT_BETA']
 #: Moffat beta injected when neither the configuration nor the image's stars give one.
 DEFAULT_MOFFAT_BETA = 3.0
 
@@ -147,6 +147,14 @@ def make_psf(config: InjectionConfig, fwhm_pix: float | None, pixel_scale: float
     cy = float((yy * data).sum() / total - (ny - 1) / 2.0)
     psf = galsim.InterpolatedImage(galsim.ImageD(data, scale=scale), flux=1.0)
     return psf.shift(-cx * scale, -cy * scale)
+
+
+def psf_image_fwhm_pix(config: InjectionConfig, pixel_scale: float) -> float | None:
+    """FWHM in image pixels of the PSF image ``config.psf`` names (as :func:`make_psf` reads it); None for an
+    analytic PSF, whose size is the image's seeing."""
+    if config.psf.strip().lower() in PSF_KINDS:
+        return None
+    return float(make_psf(config, None, pixel_scale).calculateFWHM()) / float(pixel_scale)
 
 
 def psf_half_light_radius_pix(psf, pixel_scale: float) -> float:

@@ -40,7 +40,7 @@ from comest_bayes.pipeline.executors import TaskRunner, run_tasks
 from comest_bayes.detect.sextractor import find_sextractor
 from comest_bayes.inject.cosmos import load_cosmos
 from comest_bayes.bayes.spec import load_spec
-from comest_bayes.inject.psfmodel import make_psf
+from comest_bayes.inject.psfmodel import make_psf, psf_image_fwhm_pix
 from comest_bayes.ratios.depth import isophote_radius_pix, noise_equivalent_area, point_source_depth_nea
 from comest_bayes.ratios import binned as R
 from comest_bayes.pipeline.progress import realization_with_warnings, FitProgress, describe_fit
@@ -312,6 +312,12 @@ def _run_pipeline(options: ImageOptions, config: RunConfig, out_dir, *, log, com
         if det is None:
             det = _load_detection(run, image)
         t0 = time.perf_counter()
+        if fwhm_fallback is None:
+            # an injection PSF image the user gave: its FWHM when neither the stars nor the header give one
+            psf_fwhm = psf_image_fwhm_pix(config.injection, image.pixel_scale)
+            if psf_fwhm is not None:
+                fwhm_fallback = (psf_fwhm, f"the FWHM of the injection PSF image {config.injection.psf} "
+                                           "(injection.psf), as the stars and header gave none")
         try:
             fwhm = measure_seeing(image.data - det.background, det.catalog, mask=image.mask,
                                   saturation_flagged=image.saturation is not None, headers=_headers(image),

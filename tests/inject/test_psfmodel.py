@@ -6,7 +6,7 @@ from astropy.io import fits
 
 from comest_bayes.config import InjectionConfig
 from comest_bayes.errors import InputError, InputFileError
-from comest_bayes.inject.psfmodel import make_psf, psf_half_light_radius_pix
+from comest_bayes.inject.psfmodel import make_psf, psf_half_light_radius_pix, psf_image_fwhm_pix
 
 
 # --------------------------------------------------------------------------- PSF
@@ -54,6 +54,16 @@ def test_fits_psf_pixel_scale_from_the_pixelscl_keyword(tmp_path):
     assert psf_half_light_radius_pix(psf, 0.03) == pytest.approx(1.1774, rel=0.03)
     psf = make_psf(InjectionConfig(psf=str(path), psf_pixel_scale=0.02), None, 0.03)  # config wins
     assert psf_half_light_radius_pix(psf, 0.03) == pytest.approx(2 * 1.1774, rel=0.03)
+
+
+def test_the_fwhm_of_a_psf_image_in_image_pixels(tmp_path):
+    # a Gaussian of sigma 3 PSF pixels of 0.01" (PIXELSCL): FWHM 2.3548 x 0.03" = 2.3548 pixels of 0.03"
+    yy, xx = np.mgrid[0:41, 0:41]
+    path = tmp_path / "webbpsf_like.fits"
+    fits.writeto(path, np.exp(-((xx - 20.0) ** 2 + (yy - 20.0) ** 2) / (2 * 3.0 ** 2)), fits.Header({"PIXELSCL": 0.01}))
+    assert psf_image_fwhm_pix(InjectionConfig(psf=str(path)), 0.03) == pytest.approx(2.3548, rel=0.02)
+    assert psf_image_fwhm_pix(InjectionConfig(psf=str(path)), 0.06) == pytest.approx(2.3548 / 2, rel=0.02)
+    assert psf_image_fwhm_pix(InjectionConfig(psf="moffat"), 0.03) is None  # an analytic PSF has the image's seeing
 
 
 def test_psf_errors(tmp_path):
