@@ -398,6 +398,9 @@ def _facts(run: "Run") -> dict:
     reach = (recorded.get("baseline") or {}).get("bright_neighbours") or {}
     if reach.get("warning"):
         warnings_.append(f"injection: {reach['warning']}")
+    agree = ((recorded.get("detect") or {}).get("meta") or {}).get("weight_agreement") or {}
+    if agree.get("warning"):
+        warnings_.append(f"weight map: {agree['warning']}")
     replacement = (recorded.get("sourcefree") or {}).get("replacement") or {}
     for w in replacement.get("warnings") or []:
         warnings_.append(f"source-free image: {w}")

@@ -23,6 +23,7 @@ from astropy.io import fits
 from astropy.table import Table
 
 from comest_bayes.config import RunConfig
+from comest_bayes.detect.base import weight_agreement
 from comest_bayes.detect.catalog import set_image_units
 from comest_bayes.detect.sep_backend import DetectionResult, detect, filter_kernel, detect_with_backend
 from comest_bayes.errors import ComestError, ConfigError, DetectionOverflowError, InputError
@@ -64,6 +65,11 @@ COSMOS_MIN_FWHM_ARCSEC = 0.15
 #: is less complete than this: the injected range starts inside the transition, not on its plateau.
 BRIGHT_END_MIN = 0.8
 BRIGHT_END_MIN_N = 50
+
+#: The run warns that a weight map may be of another type (--weight-type) when its sigma and the measured
+#: background RMS rank the background meshes in opposite order: Spearman r at most minus this, p < 1e-3
+#: (``detect.base.weight_agreement``).
+WEIGHT_REVERSED_R = 0.3
 
 
 @dataclass(frozen=True)
@@ -389,6 +395,11 @@ def _run_pipeline(options: ImageOptions, config: RunConfig, out_dir, *, log, com
     if run.resumed:
         log(f"resuming the run in {run.path} (finished stages are skipped)")
     if det_seconds is not None:
+        if image.noise is not None:
+            agree = weight_agreement(image.noise, det.rms, image.mask, config.detection.back_size)
+            if agree is not None:
+                agree["warning"] = _reversed_weight(agree, options.weight_type)
+            det.meta["weight_agreement"] = agree
         files = [run.write_table(layout.DETECTION, set_image_units(det.catalog, image.bunit), extname="DETECTIONS")]
         files.append(run.write_image(layout.SEGMENTATION, det.segmentation, header))
         for name, file in (("background", layout.BACKGROUND), ("rms", layout.RMS), ("noise", layout.NOISE)):
@@ -401,6 +412,9 @@ def _run_pipeline(options: ImageOptions, config: RunConfig, out_dir, *, log, com
             det = _load_detection(run, image)
         log(f"detect: done earlier ({len(det.catalog)} sources)")
     timings["detect"] = run.stage_info("detect").get("seconds")
+    agree = (run.stage_info("detect").get("meta") or {}).get("weight_agreement") or {}
+    if agree.get("warning"):
+        log(f"warning: weight map: {agree['warning']}")
     if fwhm_seconds is not None:
         run.record_stage("fwhm", seconds=fwhm_seconds, estimate=fwhm, psf=psf_choice)
     image.fwhm = float(fwhm["fwhm"])
@@ -456,6 +470,16 @@ def _run_pipeline(options: ImageOptions, config: RunConfig, out_dir, *, log, com
     run.update(timings={**run.state.get("timings", {}), **timings})
     return RunResult(out_dir=run.path, image=image, detection=det, fwhm=fwhm, resumed=run.resumed, timings=timings,
                      summary=summary)
+
+
+def _reversed_weight(agree: dict, weight_type: str) -> str | None:
+    """The warning for a weight map whose sigma ranks the background meshes against the measured RMS, or None."""
+    if not (agree["spearman"] <= -WEIGHT_REVERSED_R and agree["p"] < 1e-3):
+        return None
+    return (f"the noise it implies as {weight_type} falls where the image's measured background RMS rises "
+            f"(Spearman r = {agree['spearman']:.2f} over {agree['meshes']} background meshes), as a weight map "
+            "of another type would: pass --weight-type rms for 1-sigma errors, var for variances, ivar for "
+            "inverse variances")
 
 
 def _headers(image: ImageData) -> list:

@@ -5,7 +5,7 @@ threshold is relative to, as known answers without running a detection.
 import numpy as np
 import pytest
 
-from comest_bayes.detect.base import DEFAULT_CONV, filter_kernel, noise_map
+from comest_bayes.detect.base import DEFAULT_CONV, filter_kernel, noise_map, weight_agreement
 from comest_bayes.errors import ConfigError
 from conftest import FWHM_PER_SIGMA
 
@@ -162,3 +162,23 @@ def test_given_noise_refuses_a_map_of_another_shape_or_bad_unmasked_values():
     bad[2, 1] = 0.0
     with pytest.raises(InputError, match=r"not finite and positive on 1 unmasked pixels"):
         given_noise(bad, mask)
+
+
+def test_weight_agreement_ranks_the_meshes_as_the_measured_noise_does_only_for_the_right_weight_type():
+    # a noise level rising 4x across a 256x256 image, seen by the background RMS (with 5% mesh-to-mesh scatter)
+    # and by an error map: read as ivar (1 / sqrt) its sigma falls where the noise rises
+    rng = np.random.default_rng(3)
+    level = np.tile(np.linspace(1.0, 4.0, 256), (256, 1))
+    rms = level * (1.0 + 0.05 * rng.standard_normal((256, 256)))
+    err = level.astype(np.float32)
+    mask = np.zeros((256, 256), bool)
+    right = weight_agreement(err, rms, mask, 32)
+    wrong = weight_agreement(1.0 / np.sqrt(err), rms, mask, 32)
+    assert right["meshes"] == wrong["meshes"] == 64
+    assert right["spearman"] > 0.9 and right["p"] < 1e-10
+    assert wrong["spearman"] == pytest.approx(-right["spearman"]) and wrong["p"] == pytest.approx(right["p"])
+    # a block more than half masked is left out; a constant weight map says nothing
+    mask[:32, :32] = True
+    assert weight_agreement(err, rms, mask, 32)["meshes"] == 63
+    assert weight_agreement(np.ones_like(err), rms, mask, 32) is None
+    assert weight_agreement(err[:64, :64], rms[:64, :64], mask[:64, :64], 32) is None  # 4 meshes: too few
