@@ -144,7 +144,7 @@ def _param_summary(model: CompletenessModel, draws: np.ndarray) -> dict:
 
 
 def _json_curve(curve: dict) -> dict:
-    return {k: [float(v) for v in np.asarray(arr)] for k, arr in curve.items()}
+    return {k: [bool(v) if k == "extrapolated" else float(v) for v in np.asarray(arr)] for k, arr in curve.items()}
 
 
 #: A purity model needs at least this many detections of each class (real and false); with fewer,
@@ -473,7 +473,7 @@ def fit_kind(outcomes: Table, *, kind: str, quantity: str, requested: str, confi
         selection=selection,
         magnitudes=mags,
         parameters=_param_summary(model, draws),
-        curve=_json_curve(post.curve(np.asarray(mag_centers, float))) if products else {},
+        curve=_json_curve(post.curve(np.asarray(mag_centers, float), warn=False)) if products else {},
         diagnostics=diagnostics,
         tau=model.tau,
         shape_check=check,

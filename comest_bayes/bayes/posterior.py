@@ -547,6 +547,9 @@ class CompletenessPosterior:
 
     def _draws(self, nsamples: int | None):
         s = self.samples
+        if nsamples is not None and (isinstance(nsamples, bool) or not isinstance(nsamples, (int, np.integer))
+                                     or nsamples < 1):
+            raise InputError(f"nsamples must be a positive integer (or None for every draw), got {nsamples!r}.")
         if nsamples is not None and nsamples < len(s):
             s = s[np.linspace(0, len(s) - 1, nsamples).astype(int)]
         return s
@@ -555,11 +558,45 @@ class CompletenessPosterior:
         return self.spec.is_spatial
 
     def _to_pixels(self, x, y, ra, dec):
-        if ra is not None or dec is not None:
+        """Pixel positions of a query, or ``(None, None)`` for the image average; checked and warned about."""
+        pixel, sky = (x is not None, y is not None), (ra is not None, dec is not None)
+        if pixel[0] != pixel[1] or sky[0] != sky[1]:
+            raise InputError("a position needs both coordinates: give x and y (0-based pixels), or ra and dec "
+                             "(degrees); give neither for the image average.")
+        if all(pixel) and all(sky):
+            raise InputError("give the position as x, y or as ra, dec, not both.")
+        if all(sky):
             if self.wcs is None:
                 raise InputError("sky coordinates need the image WCS, and this posterior has none.")
-            x, y = self.wcs.all_world2pix(np.asarray(ra, float), np.asarray(dec, float), 0)
+            ra, dec = np.asarray(ra, float), np.asarray(dec, float)
+            for name, arr in (("ra", ra), ("dec", dec)):
+                if not np.all(np.isfinite(arr)):
+                    raise InputError(f"completeness query with {int((~np.isfinite(arr)).sum())} non-finite {name} "
+                                     "value(s); give finite sky positions (drop NaN rows first).")
+            x, y = self.wcs.all_world2pix(ra, dec, 0)
+            off = ~(np.isfinite(x) & np.isfinite(y))
+            if np.any(off):
+                raise InputError(f"{int(off.sum())} sky position(s) have no pixel position in the image's WCS (too far "
+                                 "from the image for its projection): query positions on or near the image.")
+        elif not all(pixel):
+            return None, None
+        ny, nx = self.meta["image_shape"]
+        xa, ya = np.asarray(x, float), np.asarray(y, float)
+        with np.errstate(invalid="ignore"):
+            out = (xa < -0.5) | (xa > nx - 0.5) | (ya < -0.5) | (ya > ny - 0.5)
+        if np.any(out):
+            warnings.warn(f"{int(np.sum(out))} queried position(s) lie outside the {nx}x{ny}-pixel image: the model "
+                          "extrapolates there (its depth is that of the nearest edge, its spatial terms continue "
+                          "past the edge).", ExtrapolationWarning, stacklevel=3)
         return x, y
+
+    @staticmethod
+    def _magnitudes(m) -> np.ndarray:
+        m = np.asarray(m, float)
+        if not np.all(np.isfinite(m)):
+            raise InputError(f"completeness query with {int((~np.isfinite(m)).sum())} non-finite magnitude value(s); "
+                             "give finite magnitudes (drop NaN rows first).")
+        return m
 
     def completeness(self, m, x=None, y=None, *, ra=None, dec=None, hlr_arcsec=None,
                      nsamples: int | None = None) -> np.ndarray:
@@ -579,12 +616,17 @@ class CompletenessPosterior:
 
         Returns
         -------
-        ndarray, shape (S,) + broadcast shape
+        ndarray, shape (S,) + broadcast shape (of ``m`` alone for the image average)
+
+        Magnitudes outside the injected range, and positions outside the image, warn
+        (:class:`ExtrapolationWarning`); non-finite values are refused.
         """
         thetas = self._draws(nsamples)
+        m = self._magnitudes(m)
         x, y = self._to_pixels(x, y, ra, dec)
-        if x is None or y is None:
-            return self.average_curve(np.asarray(m, float), nsamples=nsamples)
+        if x is None:
+            self._warn_extrapolation(m)
+            return self.average_of(thetas, m.ravel()).reshape((len(thetas),) + m.shape)
         cov = self.covariates(m, x, y, hlr_arcsec)
         self._warn_extrapolation(cov.m, cov.depth)
         shape = np.broadcast_shapes(np.shape(m), np.shape(x), np.shape(y))
@@ -636,22 +678,32 @@ class CompletenessPosterior:
         """Image-average f(m) for given parameter draws ``thetas`` (S, D), shape (S, M)."""
         return average_prob(self.model, thetas, np.atleast_1d(np.asarray(mags, float)), self.footprint_cells())
 
-    def curve(self, mags, *, x=None, y=None, ra=None, dec=None, nsamples: int | None = 1000) -> dict:
-        """Median and 68% / 95% bands of f(m) (image average, or at a position)."""
-        mags = np.asarray(mags, float)
-        if x is None and ra is None:
-            f = self.average_curve(mags, nsamples=nsamples)
-        else:
+    def curve(self, mags, *, x=None, y=None, ra=None, dec=None, nsamples: int | None = 1000,
+              warn: bool = True) -> dict:
+        """Median and 68% / 95% bands of f(m) (image average, or at a position); every entry of shape (M,).
+
+        ``extrapolated`` flags the magnitudes outside the injected range.  They warn
+        (:class:`ExtrapolationWarning`) unless ``warn`` is False, for a curve drawn over a fixed grid
+        on purpose (the run's magnitude bins, a figure), whose flags say it instead.
+        """
+        mags = np.atleast_1d(self._magnitudes(mags)).ravel()
+        with warnings.catch_warnings():
+            if not warn:
+                warnings.simplefilter("ignore", ExtrapolationWarning)
             f = self.completeness(mags, x, y, ra=ra, dec=dec, nsamples=nsamples)
         q = np.percentile(f, BANDS, axis=0)
-        return {"mag": mags, "lo95": q[0], "lo68": q[1], "median": q[2], "hi68": q[3], "hi95": q[4]}
+        return {"mag": mags, "lo95": q[0], "lo68": q[1], "median": q[2], "hi68": q[3], "hi95": q[4],
+                "extrapolated": self.extrapolated(mags)}
 
     def magnitudes_at(self, levels=(0.5, 0.8, 0.9), *, nsamples: int | None = 1000, step: float = 0.01) -> dict:
         """Posterior draws of the magnitudes where the image-average f falls to each level.
 
         Returns ``{level: ndarray (S,)}``; NaN where a draw never reaches the
-        level (e.g. a plateau A below it).
+        level (e.g. a plateau A below it).  ``levels``: one level or several, each in (0, 1).
         """
+        levels = [float(v) for v in np.atleast_1d(np.asarray(levels, float))]
+        if not all(0.0 < v < 1.0 for v in levels):
+            raise InputError(f"levels must lie strictly between 0 and 1 (fractions, e.g. 0.5), got {levels}.")
         thetas = self._draws(nsamples)
         lo, hi = self.meta.get("mag_range", (15.0, 30.0))
         return average_crossings(self.model, thetas, self.footprint_cells(), levels, lo, hi, xtol=min(step, 1e-3))
@@ -691,6 +743,9 @@ class CompletenessPosterior:
         from astropy.io import fits
 
         ny, nx = self.meta["image_shape"]
+        if isinstance(step_pix, bool) or not isinstance(step_pix, (int, np.integer)) or not 1 <= step_pix <= max(ny, nx):
+            raise InputError(f"step_pix must be a whole number of pixels from 1 to {max(ny, nx)} (the image is "
+                             f"{nx}x{ny}), got {step_pix!r}.")
         gy, gx = -(-ny // step_pix), -(-nx // step_pix)
         yc = (np.arange(gy) + 0.5) * step_pix - 0.5
         xc = (np.arange(gx) + 0.5) * step_pix - 0.5

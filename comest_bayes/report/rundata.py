@@ -72,7 +72,7 @@ def load_posterior(run: Run, kind: str, quantity: str = "completeness"):
 
 def posterior_band(post, mags, *, nsamples: int = 400, label: str | None = None) -> PosteriorBand:
     """Image-average median and 68% / 95% bands of a posterior on the grid ``mags``."""
-    curve = post.curve(np.asarray(mags, float), nsamples=nsamples)
+    curve = post.curve(np.asarray(mags, float), nsamples=nsamples, warn=False)  # a figure's grid: no warning
     return PosteriorBand.from_dict(curve, label=label or f"posterior ({post.spec.name})")
 
 

@@ -10,6 +10,7 @@ from comest_bayes.bayes.fit import fit_kind
 from comest_bayes.bayes.outcomes import BinomialData, Covariates
 from comest_bayes.bayes.model import CompletenessModel
 from comest_bayes.config import load_config
+from comest_bayes.errors import InputError
 from comest_bayes.bayes.posterior import (CompletenessPosterior, ExtrapolationWarning, Footprint, FootprintHistogram, average_crossings, average_prob)
 from outcome_truths import SHAPE as FIT_SHAPE, depth_split_outcomes, fit_depth_split
 
@@ -154,6 +155,58 @@ def test_extrapolated_magnitudes_are_flagged_and_warned(tmp_path):
     np.testing.assert_allclose(again.average_curve([23.5, 24.0]), post.average_curve([23.5, 24.0]))
 
 
+def test_image_average_queries_warn_refuse_and_keep_the_shape_of_their_magnitudes():
+    # found by a new user: the image average skipped the extrapolation warning, read NaN as a magnitude of
+    # completeness 0, returned (S, 1) for one magnitude and failed on a 2-D array
+    noise, mask = _maps(2)
+    post = _posterior(noise, mask, injected=(22.0, 24.2))
+    with pytest.warns(ExtrapolationWarning, match="2 queried magnitude"):
+        f = post.completeness([24.5, 30.0])
+    assert f.shape == (50, 2)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", ExtrapolationWarning)
+        one = post.completeness(23.5)
+        grid = post.completeness(np.array([[22.5, 23.0], [23.5, 24.0]]))
+        band = post.curve(np.array([22.5, 23.0, 24.5]), warn=False)  # a fixed grid on purpose: flagged, not warned
+    assert one.shape == (50,) and grid.shape == (50, 2, 2)
+    np.testing.assert_allclose(grid[:, 1, 0], one)
+    np.testing.assert_allclose(grid.reshape(50, 4), post.average_curve([22.5, 23.0, 23.5, 24.0]))
+    assert band["extrapolated"].tolist() == [False, False, True] and band["median"].shape == (3,)
+    assert post.curve(23.5)["mag"].shape == (1,)
+    for bad in (np.nan, np.inf, [23.0, np.nan]):
+        with pytest.raises(InputError, match="non-finite magnitude"):
+            post.completeness(bad)
+    with pytest.raises(InputError, match="non-finite magnitude"):
+        post.curve([23.0, np.nan])
+
+
+def test_position_queries_need_both_coordinates_and_warn_off_the_image():
+    noise, mask = _maps(2)
+    post = _posterior(noise, mask)
+    ny, nx = SHAPE
+    for kwargs in ({"x": 10.0}, {"y": 10.0}, {"ra": 150.0}, {"dec": 2.0}):
+        with pytest.raises(InputError, match="needs both coordinates"):
+            post.completeness(23.0, **kwargs)
+    with pytest.raises(InputError, match="not both"):
+        post.completeness(23.0, 10.0, 10.0, ra=150.0, dec=2.0)
+    with pytest.raises(InputError, match="need the image WCS"):
+        post.completeness(23.0, ra=150.0, dec=2.0)  # this posterior has no WCS
+    with pytest.warns(ExtrapolationWarning, match=f"1 queried position.*outside the {nx}x{ny}-pixel image"):
+        post.completeness(23.0, [10.0, nx + 50.0], [10.0, 10.0])
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", ExtrapolationWarning)
+        post.completeness(23.0, [-0.5, nx - 0.5], [ny - 0.5, -0.5])  # the image's outer pixel edges: inside
+    for bad in ({"nsamples": 0}, {"nsamples": -1}, {"nsamples": 2.5}):
+        with pytest.raises(InputError, match="nsamples"):
+            post.completeness(23.0, **bad)
+    for step in (0, -1, 64.5, 10 * max(SHAPE)):
+        with pytest.raises(InputError, match="step_pix"):
+            post.m50_map(step)
+    assert list(post.magnitudes_at(0.5)) == [0.5]
+    with pytest.raises(InputError, match="between 0 and 1"):
+        post.magnitudes_at(50)
+
+
 # --------------------------------------------------------------------------- posteriors from the fit stage
 # A known logistic completeness with a depth step, fitted by comest_bayes.bayes.fit.fit_kind; the tests
 # below check what the resulting CompletenessPosterior answers.
@@ -192,6 +245,9 @@ def test_sky_coordinate_query_equals_the_pixel_query():
     # and a sky position in the deep part differs from one in the shallow part
     (ra2, dec2), = [w.all_pix2world([[100.0, 100.0]], 0)[0]]
     assert post.completeness(24.0, ra=ra2, dec=dec2).mean() > post.completeness(24.0, ra=ra, dec=dec).mean() + 0.2
+    # a sky position the tangent projection cannot place (more than 90 degrees away) is refused, not read as NaN
+    with pytest.raises(InputError, match="1 sky position.*no pixel position"):
+        post.completeness(24.0, ra=[ra, 10.0], dec=[dec, -50.0])
 
 
 def test_two_pass_crossing_magnitudes_equal_the_full_fine_grid():
