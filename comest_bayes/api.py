@@ -153,6 +153,30 @@ def _refuse_worker_reimport() -> None:
                           "again), or pass ncpu=1 to run without worker processes.")
 
 
+def image_options_from(image, **facts) -> "ImageOptions":
+    """The image facts of a run (``hdu``, ``zp``, ..., ``mask_bits``) as ``ImageOptions``: one path for
+    the command line and :func:`run`.  Options of a weight map or a mask given without the map are
+    refused (they would be ignored), and ``weight_type`` None is ``ivar``."""
+    from comest_bayes.io.image import WEIGHT_TYPES
+    from comest_bayes.pipeline.stages import ImageOptions
+
+    if facts.get("weight_type") is not None and facts["weight_type"] not in WEIGHT_TYPES:
+        raise InputError(f"weight_type={facts['weight_type']!r} is not one of {WEIGHT_TYPES}; "
+                         "use ivar (inverse variance), rms (sigma) or var (variance).")
+    for companion, options in (("weight", ("weight_type", "weight_hdu")), ("mask", ("mask_hdu", "mask_bits"))):
+        stray = [o for o in options if facts.get(o) is not None]
+        if stray and facts.get(companion) is None:
+            said = ", ".join(f"{o} (--{o.replace('_', '-')})" for o in stray)
+            raise ConfigError(f"{said} given without a {companion} map: pass the map with {companion}= "
+                              f"(--{companion} FILE), or leave {'them' if len(stray) > 1 else 'it'} out.")
+    for name in ("weight", "mask"):
+        if facts.get(name) is not None:
+            facts[name] = str(facts[name])
+    if facts.get("weight_type") is None:
+        facts.pop("weight_type", None)
+    return ImageOptions(path=str(image), **facts)
+
+
 def run(image, *, out, log: Callable[[str], None] | None = None, **options) -> Run:
     """Run every stage on an image, as ``comest-bayes run IMAGE --out OUT`` does, and return the run.
 
@@ -192,7 +216,7 @@ def run(image, *, out, log: Callable[[str], None] | None = None, **options) -> R
         Every input error ``comest-bayes run`` reports (see the README), also
         before anything is written.
     """
-    from comest_bayes.pipeline.stages import ImageOptions, run_pipeline
+    from comest_bayes.pipeline.stages import run_pipeline
 
     _refuse_worker_reimport()
     facts = _image_fields()
@@ -208,11 +232,7 @@ def run(image, *, out, log: Callable[[str], None] | None = None, **options) -> R
         log = print
     config = config_from_options(**{k: options[k] for k in (*CONFIG_OPTIONS, *SHORTCUTS) if k in options})
     compute = compute_from_options(**{k: options[k] for k in COMPUTE_OPTIONS if k in options})
-    kw = {k: options[k] for k in facts if k in options}
-    for name in ("weight", "mask"):
-        if kw.get(name) is not None:
-            kw[name] = str(kw[name])
-    image_options = ImageOptions(path=str(image), **kw)
+    image_options = image_options_from(image, **{k: options[k] for k in facts if k in options})
     result = run_pipeline(image_options, config, out, log=log, compute=compute)
     if not options.get("no_report"):
         from comest_bayes.report.html import write_report

@@ -148,7 +148,7 @@ def build_parser() -> argparse.ArgumentParser:
     img.add_argument("--gain", type=float, default=None, help="e-/image unit (default: header GAIN)")
     img.add_argument("--saturation", type=float, default=None, help="saturation level (default: header SATURATE)")
     img.add_argument("--weight", default=None, help="weight map FITS of the same shape")
-    img.add_argument("--weight-type", choices=("ivar", "rms", "var"), default="ivar",
+    img.add_argument("--weight-type", choices=("ivar", "rms", "var"), default=None,
                      help="what the weight map holds (default ivar = inverse variance)")
     img.add_argument("--weight-hdu", type=int, default=None)
     img.add_argument("--mask", default=None, help="mask FITS of the same shape (non-zero = bad)")
@@ -262,13 +262,14 @@ def _cmd_fit(args, log) -> int:
 
 
 def _cmd_run(args, log) -> int:
-    from comest_bayes.pipeline.stages import ImageOptions, run_pipeline
+    from comest_bayes.api import image_options_from
+    from comest_bayes.pipeline.stages import run_pipeline
 
     config = _config_from_args(args)
-    options = ImageOptions(path=args.image, hdu=args.hdu, zp=args.zp, pixel_scale=args.pixel_scale, fwhm=args.fwhm,
-                           gain=args.gain, saturation=args.saturation, weight=args.weight,
-                           weight_type=args.weight_type, weight_hdu=args.weight_hdu, mask=args.mask,
-                           mask_hdu=args.mask_hdu, mask_bits=args.mask_bits)
+    options = image_options_from(args.image, hdu=args.hdu, zp=args.zp, pixel_scale=args.pixel_scale, fwhm=args.fwhm,
+                                 gain=args.gain, saturation=args.saturation, weight=args.weight,
+                                 weight_type=args.weight_type, weight_hdu=args.weight_hdu, mask=args.mask,
+                                 mask_hdu=args.mask_hdu, mask_bits=args.mask_bits)
     result = run_pipeline(options, config, args.out, log=log, compute=_compute_from_args(args))
     _final_summary(result, log, _report_after_run(result.out_dir, args, log))
     return 0

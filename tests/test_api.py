@@ -247,3 +247,17 @@ def test_the_run_object_holds_summary_json_and_reads_the_run(readme_run):
         run.summary("pointt")
     with pytest.raises(InputError, match="unknown catalog 'pairs'"):
         run.catalog("point", "pairs")
+
+
+def test_weight_and_mask_options_without_their_map_are_refused(tmp_path):
+    # found by a new user: weight_type="rms" without weight= was ignored, and a full run followed
+    import comest_bayes as cb
+    from comest_bayes.cli import main
+
+    for kwargs, said in (({"weight_type": "rms"}, "weight_type (--weight-type) given without a weight map"),
+                         ({"mask_hdu": 1, "mask_bits": 4}, "mask_hdu (--mask-hdu), mask_bits (--mask-bits) given "
+                                                          "without a mask map")):
+        with pytest.raises(cb.ConfigError, match=re.escape(said)):
+            cb.run(tmp_path / "image.fits", out=tmp_path / "r", **kwargs)
+    assert main(["run", str(tmp_path / "image.fits"), "--out", str(tmp_path / "r"), "--weight-type", "var"]) == 2
+    assert not (tmp_path / "r").exists()

@@ -855,6 +855,14 @@ def load_image(path, *, hdu: int | None = None, zp: float | None = None, pixel_s
     if weight_type not in WEIGHT_TYPES:
         raise InputError(f"weight_type={weight_type!r} is not one of {WEIGHT_TYPES}; "
                          f"use ivar (inverse variance), rms (sigma) or var (variance).")
+    def number(name, value):
+        try:
+            return None if value is None else float(value)
+        except (TypeError, ValueError):
+            raise InputError(f"{name}={value!r} must be a number.") from None
+
+    pixel_scale, fwhm, gain, saturation, zp = (number(n, v) for n, v in (
+        ("pixel_scale", pixel_scale), ("fwhm", fwhm), ("gain", gain), ("saturation", saturation), ("zp", zp)))
     for name, value in (("pixel_scale", pixel_scale), ("fwhm", fwhm), ("gain", gain), ("saturation", saturation)):
         if value is not None and not (np.isfinite(value) and value > 0):
             raise InputError(f"{name}={value!r} must be a positive finite number.")

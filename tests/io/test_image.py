@@ -497,6 +497,14 @@ def test_non_finite_zp(write_fits):
         load_image(img, zp=float("nan"))
 
 
+@pytest.mark.parametrize("name", ["zp", "pixel_scale", "fwhm", "gain", "saturation"])
+def test_a_parameter_that_is_no_number_is_named_not_blamed_on_the_file(write_fits, name):
+    img = write_fits("img.fits", noise_image(), wcs_header(zp=25.0))
+    with pytest.raises(InputError, match=rf"^{name}='abc' must be a number\.$"):
+        load_image(img, **{name: "abc"})
+    assert load_image(img, **{name: "2.5"}).path  # a number as text is a number
+
+
 def test_input_errors_are_value_errors():
     # Callers that only know the built-ins can still catch these.
     assert issubclass(InputError, ValueError)
