@@ -338,7 +338,8 @@ def fit_completeness(outcomes, out=None, *, kind: str = "injections", model: str
         bad = on_disk(mask, "mask")
         folder = Path(out) if out is not None else scratch / "fit"
         summary = fit_outcome_file(table, folder, kind=kind, model=model, columns=dict(columns or {}),
-                                   noise_map=noise, mask=bad, image_shape=image_shape, seed=seed, log=log)
+                                   noise_map=noise, mask=bad, image_shape=image_shape, seed=seed, log=log,
+                                   label=None if table is outcomes else "the outcome table given")
         entry = summary["kinds"][kind]["model"]
         post = CompletenessPosterior.load(folder / entry["posterior_file"])
     return CompletenessFit(kind=kind, posterior=post, model=ModelSummary.from_info(model_facts(entry)),

@@ -157,6 +157,11 @@ def test_fit_completeness_finds_a_known_m50_from_a_table_or_a_file(tmp_path):
     assert 0.003 < sd < 0.03
     assert abs(fit.m50.median - 24.0) < 4 * sd
     assert fit.m50.lo95 < fit.m50.lo68 < fit.m50.median < fit.m50.hi68 < fit.m50.hi95
+    # a table given in memory is named as such in errors, not by the scratch file it is written to, and the
+    # Python way to name a column is given with the command line's
+    with pytest.raises(InputError, match=re.escape("the outcome table given has no column(s) ['MAG']")) as err:
+        cb.fit_completeness(table, columns={"mag": "MAG"})
+    assert "--mag-column (in Python: columns={'mag': ...})" in str(err.value) and "comest-fit-" not in str(err.value)
 
 
 def test_fit_completeness_refuses_a_table_without_the_columns(tmp_path):

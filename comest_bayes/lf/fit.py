@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import json
 import math
+import re
 from pathlib import Path
 from typing import Callable
 import numpy as np
@@ -139,9 +140,15 @@ def run_lf(run_dir, *, kind: str = "point", catalog=None, mag_column: str = "mag
     run = Path(run_dir)
     # ---- validation: nothing is computed before all of this passes ----------------------
     if mode not in MODES:
-        raise ConfigError(f"--mode must be one of {list(MODES)}, got {mode!r}.")
+        raise ConfigError(f"mode (--mode) must be one of {list(MODES)}, got {mode!r}.")
     if sampler not in SAMPLERS:
-        raise ConfigError(f"--sampler must be one of {list(SAMPLERS)}, got {sampler!r}.")
+        raise ConfigError(f"sampler (--sampler) must be one of {list(SAMPLERS)}, got {sampler!r}.")
+    if isinstance(ncomp, bool) or not isinstance(ncomp, (int, np.integer)) or ncomp < 1:
+        raise ConfigError(f"ncomp, the completeness draws of the marginal mode, must be a positive "
+                          f"integer (12 or more keeps their noise small: docs/lf.md), got {ncomp!r}.")
+    if name is not None and (not isinstance(name, str) or not re.fullmatch(r"[A-Za-z0-9][A-Za-z0-9._-]*", name)):
+        raise ConfigError(f"name (--name) is the folder lf/<name> of the run: letters, digits, '.', '_' and '-', "
+                          f"starting with a letter or digit (no path), got {name!r}.")
     record = Run.open(run)  # a clear error when it is not a run directory
     post_path = run / layout.posterior(kind)
     if not post_path.is_file():
@@ -156,7 +163,7 @@ def run_lf(run_dir, *, kind: str = "point", catalog=None, mag_column: str = "mag
     if mag_range is not None:
         if len(mag_range) != 2 or not all(math.isfinite(float(v)) for v in mag_range) or \
                 not float(mag_range[1]) > float(mag_range[0]):
-            raise InputError(f"--mag-range must be two finite magnitudes LO < HI, got {list(mag_range)}.")
+            raise InputError(f"mag_range (--mag-range) must be two finite magnitudes LO < HI, got {list(mag_range)}.")
     cat_path = Path(catalog) if catalog is not None else run / layout.DETECTION
     if not cat_path.is_file():
         raise InputFileError(f"catalog {str(cat_path)!r} does not exist.")

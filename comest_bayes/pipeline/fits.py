@@ -182,7 +182,7 @@ def noise_at_positions(noise: np.ndarray, x, y, *, what: str) -> np.ndarray:
 
 def fit_outcome_file(path, out, *, kind: str = "injections", model: str = "auto", columns: dict | None = None,
                      noise_map=None, mask=None, image_shape=None, seed: int = 0, mag_bin: float = 0.1,
-                     log=lambda s: None) -> dict:
+                     log=lambda s: None, label: str | None = None) -> dict:
     """Fit the completeness model to an outcome table made by any injection pipeline.
 
     Parameters
@@ -216,6 +216,9 @@ def fit_outcome_file(path, out, *, kind: str = "injections", model: str = "auto"
         from the maps, else the largest position + 1).
     seed : int
         Root seed of the fit.
+    label : str, optional
+        What error messages call the table (default ``outcome table '<path>'``; the Python API names a
+        table given in memory so, rather than by the scratch file it writes).
 
     Returns
     -------
@@ -225,6 +228,7 @@ def fit_outcome_file(path, out, *, kind: str = "injections", model: str = "auto"
 
 
     path, out = Path(path), Path(out)
+    what = label or f"outcome table {str(path)!r}"
     named = {key: value for key, value in (columns or {}).items() if value is not None}
     unknown = sorted(set(named) - set(OUTCOME_COLUMNS))
     if unknown:
@@ -232,22 +236,23 @@ def fit_outcome_file(path, out, *, kind: str = "injections", model: str = "auto"
     cols = dict(OUTCOME_COLUMNS, **named)
     # -- validate everything before writing anything
     if not path.is_file():
-        raise InputError(f"outcome table {str(path)!r} does not exist.")
+        raise InputError(f"{what} does not exist.")
     try:
         raw = Table.read(path)
     except Exception as exc:  # astropy raises many types for unreadable tables
-        raise InputError(f"outcome table {str(path)!r} cannot be read: {exc}") from None
+        raise InputError(f"{what} cannot be read: {exc}") from None
     # mag and detected are needed; x, y and noise are optional, but a name given for one must exist
     required = [c for c in OUTCOME_COLUMNS if c in ("mag", "detected") or c in named]
     missing = [c for c in required if cols[c] not in raw.colnames]
     if missing:
-        raise InputError(f"outcome table {str(path)!r} has no column(s) {[cols[c] for c in missing]}; its columns "
-                         f"are {raw.colnames}. Name yours with " + " / ".join(f"--{c}-column" for c in missing) + ".")
+        raise InputError(f"{what} has no column(s) {[cols[c] for c in missing]}; its columns are {raw.colnames}. "
+                         "Name yours with " + " / ".join(f"--{c}-column" for c in missing)
+                         + " (in Python: columns={" + ", ".join(f"{c!r}: ..." for c in missing) + "}).")
     if ("x" in named) != ("y" in named) and not (cols["x"] in raw.colnames and cols["y"] in raw.colnames):
         raise InputError(f"positions need both an x and a y column; {cols['x']!r} and {cols['y']!r} are not both "
                          "in the table: name both with --x-column and --y-column.")
     if len(raw) == 0:
-        raise InputError(f"outcome table {str(path)!r} has no rows.")
+        raise InputError(f"{what} has no rows.")
     if out.exists() and (not out.is_dir() or any(out.iterdir())):
         raise InputError(f"output folder {str(out)!r} exists and is not empty; give a new or empty folder "
                          "(nothing is overwritten).")
@@ -276,7 +281,7 @@ def fit_outcome_file(path, out, *, kind: str = "injections", model: str = "auto"
         shape = (int(np.nanmax(table["y"])) + 2, int(np.nanmax(table["x"])) + 2)
     noise_from_map = noise is not None and has_xy and "noise" not in table.colnames
     if noise_from_map:
-        table["noise"] = noise_at_positions(noise, table["x"], table["y"], what=f"outcome table {str(path)!r}")
+        table["noise"] = noise_at_positions(noise, table["x"], table["y"], what=what)
     if shape is None:
         shape = (2, 2)  # no positions: the image plays no role
     config = RunConfig(seed=int(seed), fit=FitConfig(model=model))

@@ -92,7 +92,10 @@ def test_run_lf_writes_results_figures_and_summary_entry(fake_run):
 @pytest.mark.parametrize("kwargs, error, message", [
     ({"kind": "buldisk"}, InputFileError, "no completeness posterior for kind 'buldisk'"),
     ({"model": "powerlow"}, ConfigError, "Did you mean 'powerlaw'"),
-    ({"mode": "exact"}, ConfigError, "--mode must be one of"),
+    ({"mode": "exact"}, ConfigError, r"mode \(--mode\) must be one of"),
+    ({"mode": "marginal", "ncomp": 0}, ConfigError, "ncomp, the completeness draws of the marginal mode, must be a "
+                                                    "positive integer"),
+    ({"name": "../../escape"}, ConfigError, r"name \(--name\) is the folder lf/<name> of the run"),
     ({"mag_range": (24.0, 23.0)}, InputError, "LO < HI"),
     ({"mag_range": (30.0, 31.0)}, InputError, "no catalog object has a magnitude in"),
     ({"mag_column": "mag_iso"}, InputError, "has no column 'mag_iso'"),
