@@ -60,9 +60,10 @@ def config_from_options(*, config=None, overrides=None, seed: int | None = None,
     ----------
     config : str or Path, optional
         TOML configuration file (``--config``).
-    overrides : list of str or mapping, optional
-        ``["detection.thresh=2", ...]`` or ``{"detection.thresh": 2}`` (``--set``);
-        the shortcuts below are applied after them.
+    overrides : str, list of str or mapping, optional
+        ``--set``: ``["detection.thresh=2", ...]``, ``{"detection.thresh": 2}`` or
+        ``{"detection": {"thresh": 2}}`` (:func:`comest_bayes.config.override_items`); the
+        shortcuts below are applied after them.
     seed : int, optional
         Root seed of every random draw (default 0, or the file's).
     no_bnb : bool
@@ -78,20 +79,13 @@ def config_from_options(*, config=None, overrides=None, seed: int | None = None,
     ConfigError
         An unknown shortcut, or a value the configuration refuses.
     """
-    from comest_bayes.config import load_config
+    from comest_bayes.config import load_config, override_items
 
     unknown = sorted(set(shortcuts) - set(SHORTCUTS))
     if unknown:
         raise ConfigError(f"unknown configuration option(s) {unknown}; the shortcuts are {sorted(SHORTCUTS)} "
                           f"(anything else: overrides=['section.key=value']).")
-    if overrides is None:
-        texts = []
-    elif isinstance(overrides, Mapping):
-        texts = [f"{key}={_listed(value)}" for key, value in overrides.items()]
-    elif isinstance(overrides, str):
-        texts = [overrides]
-    else:
-        texts = [str(t) for t in overrides]
+    texts = []
     for option, key in SHORTCUTS.items():
         value = shortcuts.get(option)
         if value is not None:
@@ -100,7 +94,11 @@ def config_from_options(*, config=None, overrides=None, seed: int | None = None,
         texts.append("sourcefree.bnb=false")
     if precision_at:
         texts += ["adaptive.target=f", f"adaptive.magnitudes={_listed(precision_at)}"]
-    return load_config(config, texts, seed=seed)
+    # the overrides in any of their forms, then the shortcuts (which win), as one table per section
+    tables: dict = {}
+    for section, key, value, _ in override_items(overrides) + override_items(texts):
+        tables.setdefault(section, {})[key] = value
+    return load_config(config, tables, seed=seed)
 
 
 def compute_from_options(*, ncpu: int | None = None, executor: str = "processes", scheduler: str | None = None,

@@ -674,6 +674,38 @@ def parse_override(text: str) -> tuple[str, str, str]:
     return section, key.strip(), value.strip()
 
 
+def override_items(overrides) -> list[tuple[str, str, Any, str]]:
+    """``(section, key, value, label)`` of overrides in any of their forms, in order (a later one wins).
+
+    The forms: ``"detection.thresh=2"``, a list of such strings, a mapping of dotted keys
+    ``{"detection.thresh": 2}``, or of sections ``{"detection": {"thresh": 2}}`` (the last two may mix).
+    Text values are parsed later, as a TOML file's settings are; other values are taken as given.
+    ``label`` is the override as given, for messages.
+    """
+    if overrides is None:
+        return []
+    if isinstance(overrides, str):
+        overrides = [overrides]
+    items = []
+    if isinstance(overrides, Mapping):
+        for name, value in overrides.items():
+            if isinstance(value, Mapping):
+                items += [(str(name), str(key), v, f"{name}.{key}") for key, v in value.items()]
+            elif "." in str(name):
+                section, key = str(name).split(".", 1)
+                items.append((section.strip(), key.strip(), value, str(name)))
+            else:
+                raise ConfigError(f"cannot read the override {name!r}: {value!r}: give {{'section.key': value}} or "
+                                  f"{{'section': {{'key': value}}}}, e.g. {{'detection.thresh': 2.0}}.")
+        return items
+    for text in overrides:
+        if not isinstance(text, str):
+            raise ConfigError(f"cannot read the override {text!r}: give 'section.key=value' strings, e.g. "
+                              "'detection.thresh=2.0', or a mapping.")
+        items.append((*parse_override(text), text))
+    return items
+
+
 def load_config(path: str | Path | None = None, overrides: list[str] | Mapping | None = None,
                 seed: int | None = None) -> RunConfig:
     """Build a :class:`RunConfig` from defaults, an optional TOML file and overrides.
@@ -683,9 +715,9 @@ def load_config(path: str | Path | None = None, overrides: list[str] | Mapping |
     path : str or Path, optional
         TOML file with ``[detection]`` and ``[sourcefree]`` tables (and an
         optional top-level ``seed``).
-    overrides : list of str or mapping, optional
-        ``["detection.thresh=2", ...]`` or ``{"detection": {"thresh": 2}}``;
-        applied after the file.
+    overrides : str, list of str or mapping, optional
+        ``"detection.thresh=2"``, ``["detection.thresh=2", ...]``, ``{"detection.thresh": 2}`` or
+        ``{"detection": {"thresh": 2}}`` (:func:`override_items`); applied after the file.
     seed : int, optional
         Root seed; overrides the file's.
     """
@@ -715,23 +747,11 @@ def load_config(path: str | Path | None = None, overrides: list[str] | Mapping |
             f"unknown table(s) {sorted(extra)} in {str(path)!r}; valid tables: "
             f"{sorted(_SECTIONS)} and the top-level key 'seed'."
         )
-    if overrides:
-        items = overrides.items() if isinstance(overrides, Mapping) else None
-        if items is None:
-            for text in overrides:
-                section, key, value = parse_override(text)
-                if section not in _SECTIONS:
-                    raise ConfigError(
-                        f"unknown section {section!r} in override {text!r}; valid sections: "
-                        f"{sorted(_SECTIONS)}."
-                    )
-                merged[section][key] = value
-        else:
-            for section, table in items:
-                if section not in _SECTIONS:
-                    raise ConfigError(f"unknown section {section!r}; valid sections: {sorted(_SECTIONS)}.")
-                _require_table(section, _SECTIONS[section], table, "in the overrides")
-                merged[section].update(table)
+    for section, key, value, label in override_items(overrides):
+        if section not in _SECTIONS:
+            raise ConfigError(f"unknown section {section!r} in override {label!r}; valid sections: "
+                              f"{sorted(_SECTIONS)}.")
+        merged[section][key] = value
     sections = {name: _section_from_mapping(name, cls, merged[name]) for name, cls in _SECTIONS.items()}
     final_seed = seed if seed is not None else top_seed
     if isinstance(final_seed, bool) or not isinstance(final_seed, int):

@@ -161,6 +161,24 @@ def test_unknown_key_without_a_close_match_lists_the_valid_keys():
     assert "back_filtersize" in str(info.value) and "thresh" in str(info.value)
 
 
+def test_overrides_in_every_documented_form_give_the_same_configuration():
+    # found by a new user: load_config took nested tables but not dotted keys, comest_bayes.run the reverse
+    from comest_bayes.api import config_from_options
+
+    want = load_config(overrides=["detection.thresh=2.5", "injection.nsims=7"])
+    assert want.detection.thresh == 2.5 and want.injection.nsims == 7
+    forms = ({"detection.thresh": 2.5, "injection.nsims": 7}, {"detection": {"thresh": 2.5}, "injection.nsims": 7},
+             {"detection": {"thresh": 2.5}, "injection": {"nsims": 7}})
+    for form in forms:
+        assert load_config(overrides=form) == want
+        assert config_from_options(overrides=form) == want
+    assert load_config(overrides="detection.thresh=2.5").detection.thresh == 2.5
+    assert config_from_options(overrides=["detection.thresh=2.5"], nsims=7) == want
+    assert config_from_options(overrides={"injection.nsims": 3}, nsims=7).injection.nsims == 7  # the shortcut wins
+    with pytest.raises(ConfigError, match=r"cannot read the override 'thresh': 2\.5"):
+        load_config(overrides={"thresh": 2.5})
+
+
 def test_unknown_section(tmp_path):
     with pytest.raises(ConfigError, match=r"unknown section 'detect' in override 'detect\.thresh=2'.*'detection'"):
         load_config(overrides=["detect.thresh=2"])
