@@ -206,7 +206,13 @@ class Run:
 
     # ---- raw records
     def file(self, name: str) -> Path:
-        """The path of one of the run's files (a name of :mod:`comest_bayes.io.layout`)."""
+        """The path of one of the run's files (a name of :mod:`comest_bayes.io.layout`, or a path under one of
+        its folders); it need not exist yet.  A name that is neither is refused."""
+        known = {v for k, v in vars(layout).items() if k.isupper() and isinstance(v, str)}
+        parts = Path(name).parts
+        if not parts or ".." in parts or Path(name).is_absolute() or (name not in known and parts[0] not in known):
+            raise InputError(f"{name!r} is not a file of a comest-bayes run; the run's files and folders are "
+                             f"{sorted(known)} (comest_bayes.io.layout).")
         return self.path / name
 
     @cached_property
@@ -309,9 +315,12 @@ class Run:
             raise InputError(f"quantity {quantity!r} must be 'completeness' or 'purity'.")
         model = entry.model if quantity == "completeness" else entry.purity_model
         if model is None or model.skipped or not model.posterior_file:
-            why = f" ({model.skipped})" if model is not None and model.skipped else ""
-            raise InputFileError(f"the run in {str(self.path)!r} holds no {quantity} posterior for kind {kind!r}{why};"
-                                 f" was it run with model 'none'?")
+            if model is not None and model.skipped:
+                why = f": the model was skipped ({model.skipped})"
+            else:
+                option = "fit.model" if quantity == "completeness" else "fit.purity_model"
+                why = f"; it was run without one ({option} = 'none', or stopped before the fits)"
+            raise InputFileError(f"the run in {str(self.path)!r} holds no {quantity} posterior for kind {kind!r}{why}.")
         return CompletenessPosterior.load(self.path / model.posterior_file)
 
     def summary_json(self) -> dict:

@@ -26,7 +26,7 @@ from comest_bayes.report import rundata as RD
 from comest_bayes.io.rundir import atomic_path
 from comest_bayes.io import layout
 from comest_bayes.io.run import Run
-from comest_bayes.errors import RunDirectoryError
+from comest_bayes.errors import InputError, RunDirectoryError
 from comest_bayes.report.plots.images import figure3
 from comest_bayes.report.plots.data import PosteriorBand
 from comest_bayes.report.plots.completeness import band_caption, ratios_figure, magnitude_comparison_figure
@@ -100,14 +100,15 @@ def _num(value, fmt: str = "{:.2f}", missing: str = "n/a") -> str:
     return missing if not np.isfinite(v) else fmt.format(v)
 
 
-def _interval(entry: dict | None, fmt: str = "{:.2f}") -> str:
-    """``median [lo68, hi68]`` of a posterior summary entry."""
+def _interval(entry: dict | None, fmt: str = "{:.2f}", *, purity: bool = False) -> str:
+    """``median [lo68, hi68]`` of a posterior summary entry (of a purity model: its range is the detections')."""
     if not entry or entry.get("median") is None:
         frac = (entry or {}).get("defined_fraction")
         return "n/a" + (f" (defined in {100 * frac:.0f}% of draws)" if frac is not None else "")
     text = f"{fmt.format(entry['median'])} [{fmt.format(entry['lo68'])}, {fmt.format(entry['hi68'])}]"
     if entry.get("extrapolated"):
-        text += " extrapolated: outside the injected magnitudes"
+        text += (" extrapolated: outside the measured magnitudes of the detections" if purity
+                 else " extrapolated: outside the injected magnitudes")
     return text
 
 
@@ -418,7 +419,7 @@ def _characteristic_table(r: _Report, kind: str) -> None:
     for q, key in (("completeness", "model"), ("purity", "purity_model")):
         e = k.get(key) or {}
         if e.get("name"):
-            rows.append([q, e["name"], _interval(e.get("m50")), _interval(e.get("m80")), _interval(e.get("m90"))])
+            rows.append([q, e["name"], *(_interval(e.get(m), purity=q == "purity") for m in ("m50", "m80", "m90"))])
     if rows:
         r.table(["quantity", "model", "m50 (mag) [68%]", "m80 (mag) [68%]", "m90 (mag) [68%]"], rows,
                 numeric=(2, 3, 4))
@@ -773,6 +774,9 @@ def write_report(run_dir, out=None, *, log: Callable[[str], None] | None = None,
     t0 = time.perf_counter()
     if not Path(run_dir).is_dir():
         raise RunDirectoryError(f"{str(run_dir)!r} is not a directory; give the --out directory of a comest-bayes run.")
+    for name, value, least in (("size", size, 16), ("dpi", dpi, 10)):
+        if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < least:
+            raise InputError(f"{name} must be a whole number of at least {least}, got {value!r}.")
     run = Run.open(run_dir)
     out = Path(out) if out is not None else run.path / layout.REPORT
     figdir = run.path / layout.FIGURES_DIR

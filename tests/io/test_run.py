@@ -5,7 +5,7 @@ import json
 
 import pytest
 
-from comest_bayes.errors import InputFileError, RunDirectoryError
+from comest_bayes.errors import InputError, InputFileError, RunDirectoryError
 from comest_bayes.io import layout
 from comest_bayes.io.run import Run
 
@@ -60,3 +60,23 @@ def test_a_record_without_fingerprint_has_no_configuration(tmp_path):
     run = Run.open(_write_run(tmp_path / "run", state={"image": {}}))
     with pytest.raises(RunDirectoryError, match=r"not a comest-bayes run record \(no fingerprint\)"):
         run.config
+
+
+def test_file_names_a_file_of_the_run_or_refuses(tmp_path):
+    run = Run.open(_write_run(tmp_path / "run", SUMMARY))
+    assert run.file(layout.SUMMARY) == tmp_path / "run" / "summary.json"
+    assert run.file(layout.posterior("point")) == tmp_path / "run" / "posterior" / "point_completeness.npz"
+    for bad in ("nonexistent", "../outside.fits", "/etc/passwd", "posterior/../../x"):
+        with pytest.raises(InputError, match="is not a file of a comest-bayes run"):
+            run.file(bad)
+
+
+def test_a_missing_posterior_says_why(tmp_path):
+    summary = {"kinds": {"point": {"model": {"name": None, "requested": "auto", "skipped": "too few outcomes"},
+                                   "purity_model": None}}}
+    run = Run.open(_write_run(tmp_path / "run", summary))
+    with pytest.raises(InputFileError, match=r"no completeness posterior for kind 'point': the model was skipped "
+                                             r"\(too few outcomes\)\.$"):
+        run.posterior("point")
+    with pytest.raises(InputFileError, match=r"no purity posterior .* it was run without one \(fit.purity_model"):
+        run.posterior("point", "purity")

@@ -386,3 +386,15 @@ def test_cli_run_writes_the_report_unless_told_not_to(tile, tmp_path, capsys):
     last = printed.strip().splitlines()
     assert last[-1] == f"report: {out / 'report.html'}"
     assert any(line.strip().startswith("point") and "50% completeness: binned" in line for line in last)
+
+
+def test_report_options_and_the_extrapolation_label_of_a_purity_model(tmp_path):
+    from comest_bayes.errors import InputError
+    from comest_bayes.report.html import _interval
+
+    for bad in ({"size": 0}, {"size": 12.5}, {"dpi": 0}):
+        with pytest.raises(InputError, match="must be a whole number of at least"):
+            write_report(tmp_path, **bad)
+    entry = {"median": 26.1, "lo68": 25.9, "hi68": 26.3, "extrapolated": True}
+    assert _interval(entry).endswith("extrapolated: outside the injected magnitudes")
+    assert _interval(entry, purity=True).endswith("extrapolated: outside the measured magnitudes of the detections")
