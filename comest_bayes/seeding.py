@@ -90,6 +90,8 @@ class Stream:
     LF_MARGINAL = "marginal"
     #: ``lf.model``, after LF: which completeness draws the marginal mode uses.
     LF_MARGINAL_DRAWS = "marginal-draws"
+    #: ``lf.model``, after LF: the Poisson replicates of the posterior predictive check of the counts.
+    LF_CHECK = "check"
 
     # -- data with known truths (sim), from the seed given to them
     #: ``sim.analytic``: the white noise of the closed-form detection check.

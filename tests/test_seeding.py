@@ -63,7 +63,7 @@ PUBLISHED_STREAMS = {
     "DESIGN_FIT": "design-fit", "FIT": "fit", "FOOTPRINT": "footprint", "SELECT": "select", "TAU": "tau",
     "LAPLACE_DRAWS": "laplace-draws", "MAP_STARTS": "map-starts", "WALKERS": "walkers", "EMCEE": "emcee",
     "IMPORTANCE": "importance", "IMPORTANCE_TAILS": "importance-tails", "NUTS": "nuts", "CROSSING": "crossing", "LF_INITIAL": "lf-initial", "LF": "lf", "LF_FIXED": "fixed", "LF_JOINT": "joint",
-    "LF_MARGINAL": "marginal", "LF_MARGINAL_DRAWS": "marginal-draws", "ANALYTIC_NOISE": "analytic-noise",
+    "LF_MARGINAL": "marginal", "LF_MARGINAL_DRAWS": "marginal-draws", "LF_CHECK": "check", "ANALYTIC_NOISE": "analytic-noise",
     "DEMO": "demo", "DEMO_GALAXIES": "galaxies", "DEMO_STARS": "stars", "DEMO_BRIGHT_STARS": "bright_stars",
     "DEMO_NOISE": "noise",
 }

@@ -612,6 +612,49 @@ def _range_warnings(inputs: LFInputs, fbar_med, warn: list) -> None:
             warn.append(msg)
 
 
+#: A count fit warns when the posterior predictive p-value of its binned counts (:func:`counts_check`) is
+#: below this: the threshold of the completeness model's shape check (``bayes.checks``).
+COUNTS_CHECK_P = 1e-3
+
+
+def counts_check(observed, expected_draws, rng, *, replicates: int = 10) -> dict:
+    """Posterior predictive check of the binned counts (Gelman, Meng & Stern 1996).
+
+    For every posterior draw ``s`` the Poisson deviance ``2 sum_k [n_k ln(n_k / mu_sk) - (n_k - mu_sk)]``
+    of the observed counts ``n`` against the draw's expected counts ``mu_s`` is compared with the
+    deviance of ``replicates`` Poisson draws of ``mu_s`` against the same ``mu_s``; ``p_value`` is the
+    fraction of replicates at least as far from their expectation as the data are.  A count model
+    that cannot follow the counts (or a completeness of the wrong kind of source, which bends them)
+    gives a small p.
+
+    Parameters
+    ----------
+    observed : array, shape (K,)
+    expected_draws : array, shape (S, K)
+    rng : numpy.random.Generator
+    replicates : int
+        Poisson replicates per draw.
+
+    Returns
+    -------
+    dict
+        ``p_value``, ``deviance`` (median over the draws), ``bins`` (K) and ``replicates`` (total).
+    """
+    n = np.asarray(observed, float)
+    mu = np.clip(np.asarray(expected_draws, float), 1e-300, None)
+
+    def deviance(counts, means):
+        with np.errstate(divide="ignore", invalid="ignore"):
+            t = np.where(counts > 0, counts * np.log(counts / means), 0.0)
+        return 2.0 * np.sum(t - (counts - means), axis=-1)
+
+    d_obs = deviance(n[None, :], mu)                                    # (S,)
+    rep = rng.poisson(np.broadcast_to(mu, (replicates,) + mu.shape))    # (R, S, K)
+    d_rep = deviance(rep, mu[None])                                     # (R, S)
+    return {"p_value": float(np.mean(d_rep >= d_obs[None, :])), "deviance": float(np.median(d_obs)),
+            "bins": int(n.size), "replicates": int(d_rep.size)}
+
+
 def fit_counts(inputs: LFInputs, counts, *, mode: str = "joint", post=None, f_fixed=None, seed: int = 0,
                ncomp: int = 16, min_ess: float = 400, max_steps: int = 20000, npred: int = 400,
                name: str = "lf", kind: str = "", log: Callable[[str], None] | None = None,
@@ -745,6 +788,15 @@ def fit_counts(inputs: LFInputs, counts, *, mode: str = "joint", post=None, f_fi
     exp_draws = inputs.area_deg2 * inputs.dt * (phi_draws * fbar_draws) @ inputs.bin_kernel.T
     observed = np.histogram(inputs.mags, bins=inputs.obs_edges)[0].astype(float)
     spec = counts.spec
+    check = counts_check(observed, exp_draws, rng_for(seed, Stream.LF, Stream.LF_CHECK))
+    diag = {**diag, "counts_check": check}
+    if check["p_value"] < COUNTS_CHECK_P:
+        said = (f"p = {check['p_value']:.2g}" if check["p_value"] > 0 else f"p < {1 / check['replicates']:.2g}")
+        msg = (f"the counts do not follow the fitted {spec.name} model: posterior predictive {said} (Poisson deviance {check['deviance']:.1f} over {check['bins']} bins; see "
+               "counts.png). Check the count model and the magnitude range, and that the completeness is that of "
+               "sources like those counted (--kind): another kind's completeness bends the counts.")
+        warnings.warn(msg, LFWarning, stacklevel=2)
+        warn.append(msg)
     meta = {"seed": int(seed), "seconds": round(time.perf_counter() - t0, 2),
             "completeness_model": None if post is None else post.spec.name,
             "transfer": "identity" if inputs.transfer is None else "measured",
