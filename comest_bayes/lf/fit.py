@@ -212,8 +212,7 @@ def run_lf(run_dir, *, kind: str = "point", catalog=None, mag_column: str = "mag
     entry["files"] = [f"{layout.lf_dir(name)}/{f}" for f in files]
     entry["converged"] = bool(res.diagnostics.get("converged", False))
     _update_summary(run, name, entry)
-    for w in res.warnings:
-        log(f"warning: lf: {w}")
+    # the warnings were raised as LFWarning while fitting (the command line prints each once); they are in lf.json
     pars = res.parameter_summary()
     log("lf: " + ", ".join(f"{k} = {v['median']:.3f} (+{v['hi68'] - v['median']:.3f}/-{v['median'] - v['lo68']:.3f})"
                            for k, v in pars.items()))
