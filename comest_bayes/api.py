@@ -98,7 +98,15 @@ def config_from_options(*, config=None, overrides=None, seed: int | None = None,
     tables: dict = {}
     for section, key, value, _ in override_items(overrides) + override_items(texts):
         tables.setdefault(section, {})[key] = value
-    return load_config(config, tables, seed=seed)
+    out = load_config(config, tables, seed=seed)
+    # options of the adaptive design given while it is off would be silently unused: refused
+    stray = [f"--{flag}" for flag, given in (("precision-at", precision_at), ("max-nsims", shortcuts.get("max_nsims")))
+             if given is not None and given != () and given != []]
+    if stray and not out.adaptive.enabled:
+        raise ConfigError(f"{' and '.join(stray)} given without --precision (adaptive.precision): the adaptive "
+                          "design is off, so they would be ignored. Give --precision (a target 68% half-width of "
+                          "m50 in mag, e.g. 0.02, or with --precision-at a target sd of f), or leave them out.")
+    return out
 
 
 def compute_from_options(*, ncpu: int | None = None, executor: str = "processes", scheduler: str | None = None,

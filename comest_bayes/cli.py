@@ -423,6 +423,16 @@ def main(argv=None) -> int:
         warnings.showwarning = _show_warning
     handler = {"run": _cmd_run, "demo": _cmd_demo, "report": _cmd_report, "lf": _cmd_lf, "fit": _cmd_fit,
                "info": _cmd_info}[args.command]
+    unraisable = sys.unraisablehook
+
+    def _quiet_interrupt(info) -> None:
+        # a Ctrl-C that lands in a finalizer or a garbage-collection callback (JAX has one) cannot propagate:
+        # Python would print it as "Exception ignored"; the interrupt itself is reported below
+        if info.exc_type is not None and issubclass(info.exc_type, KeyboardInterrupt):
+            return
+        unraisable(info)
+
+    sys.unraisablehook = _quiet_interrupt
     try:
         return handler(args, log)
     except ComestError as exc:
@@ -456,6 +466,7 @@ def main(argv=None) -> int:
         return 130
     finally:
         warnings.showwarning = shown
+        sys.unraisablehook = unraisable
 
 
 def _one_line(exc: BaseException) -> str:

@@ -525,8 +525,8 @@ class AdaptiveConfig:
         return self.precision > 0
 
     def __post_init__(self):
-        _check(self.precision >= 0, "adaptive.precision", self.precision,
-               "a target half-width of m50 in mag (e.g. 0.02), or 0 for the uniform design")
+        _check(self.precision >= 0 and self.precision < float("inf"), "adaptive.precision", self.precision,
+               "a finite target half-width of m50 in mag (e.g. 0.02), or 0 for the uniform design")
         _check(isinstance(self.pilot_nsims, int) and self.pilot_nsims >= 1, "adaptive.pilot_nsims",
                self.pilot_nsims, "an integer >= 1")
         _check(self.growth > 0, "adaptive.growth", self.growth, "a positive fraction, e.g. 0.5")

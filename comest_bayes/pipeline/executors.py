@@ -59,13 +59,35 @@ def _alive(pid: int) -> bool:
 
 
 def _worker_init(main_pid: int, counter) -> None:
-    """Worker initializer: one core of its own (worker k on core k), and exit with the main process."""
-
+    """Worker initializer: one core of its own (worker k on core k), exit with the main process, and a
+    Ctrl-C that interrupts a running task but leaves an idle worker to the pool's shutdown."""
     with counter.get_lock():
         index = counter.value
         counter.value += 1
     pin_to_one_core(index)
     _die_with_parent(main_pid)
+    signal.signal(signal.SIGINT, _on_interrupt)
+
+
+#: True while this worker process runs a task (:func:`_tracked`).
+_BUSY = [False]
+
+
+def _on_interrupt(signum, frame) -> None:
+    """SIGINT in a worker: a running task stops (as by default); an idle worker, waiting for the next task
+    between batches, ignores it, so that it leaves with the pool's shutdown instead of printing a
+    traceback from the queue it waits on."""
+    if _BUSY[0]:
+        raise KeyboardInterrupt
+
+
+def _tracked(fn: Callable[[Any], Any], task):
+    """``fn(task)`` in a worker, marked busy while it runs (see :func:`_on_interrupt`)."""
+    _BUSY[0] = True
+    try:
+        return fn(task)
+    finally:
+        _BUSY[0] = False
 
 
 def _die_with_parent(main_pid: int) -> None:
@@ -137,12 +159,22 @@ class TaskRunner:
         if self._pool is not None:
             self._pool.shutdown(wait=True, cancel_futures=True)
             self._pool = None
-        if self._client is not None:
-            self._client.close()
-            self._client = None
+        import logging
+
+        # a local cluster stopped by an interrupt logs each worker it has to kill: not the user's concern
+        quiet = logging.getLogger("distributed")
+        level = quiet.level
         if self._cluster is not None:
-            self._cluster.close()
-            self._cluster = None
+            quiet.setLevel(logging.ERROR)
+        try:
+            if self._client is not None:
+                self._client.close()
+                self._client = None
+            if self._cluster is not None:
+                self._cluster.close()
+                self._cluster = None
+        finally:
+            quiet.setLevel(level)
 
     def run(self, fn: Callable[[Any], Any], tasks: Sequence, *, on_result: Callable[[Any, Any], None],
             progress: bool = False, desc: str = "tasks") -> None:
@@ -163,7 +195,7 @@ class TaskRunner:
                     self._pool = ProcessPoolExecutor(max_workers=self.workers, mp_context=ctx,
                                                      initializer=_worker_init,
                                                      initargs=(os.getpid(), ctx.Value("i", 0)))
-                futures = {self._pool.submit(fn, task): task for task in tasks}
+                futures = {self._pool.submit(_tracked, fn, task): task for task in tasks}
                 try:
                     for fut in as_completed(list(futures)):
                         # pop: a finished future holds its result, so keeping it would grow the

@@ -356,6 +356,7 @@ def _run_pipeline(options: ImageOptions, config: RunConfig, out_dir, *, log, com
         if det is None:
             det = _load_detection(run, image)
         mag_range, range_record = _injection_range(config, image, det, psf_choice, float(fwhm["fwhm"]))
+    _check_precision_magnitudes(config, mag_range)  # before anything is written: a typo must not leave a run
     # the injections of a range far brighter than the detection limit keep the brightest one's reach apart
     if config.injection.min_sep <= 0 and range_record["rule"] != "m5":
         if det is None:
@@ -470,6 +471,17 @@ def _run_pipeline(options: ImageOptions, config: RunConfig, out_dir, *, log, com
     run.update(timings={**run.state.get("timings", {}), **timings})
     return RunResult(out_dir=run.path, image=image, detection=det, fwhm=fwhm, resumed=run.resumed, timings=timings,
                      summary=summary)
+
+
+def _check_precision_magnitudes(config: RunConfig, mag_range) -> None:
+    """The magnitudes of ``--precision-at`` must lie inside the injected range (else ConfigError)."""
+    ad = config.adaptive
+    lo, hi = float(mag_range[0]), float(mag_range[1])
+    mags = [float(m) for m in ad.magnitudes]
+    if ad.enabled and ad.target == "f" and not all(lo <= m <= hi for m in mags):
+        raise ConfigError(f"adaptive.magnitudes {mags} (--precision-at) must lie inside the injected "
+                          f"range [{lo:.2f}, {hi:.2f}] mag: no injection can make f precise outside it. Choose "
+                          "magnitudes inside it or widen injection.mag_range.")
 
 
 def _reversed_weight(agree: dict, weight_type: str) -> str | None:
@@ -959,10 +971,6 @@ def _adaptive_injection(run: RunDirectory, ctx, config: RunConfig, compute: "Com
     designs.mkdir(exist_ok=True)
     at_f = ad.target == "f"
     mags_f = tuple(float(m) for m in ad.magnitudes)
-    if at_f and not all(lo <= m <= hi for m in mags_f):
-        raise ConfigError(f"adaptive.magnitudes {list(mags_f)} (--precision-at) must lie inside the injected "
-                          f"range [{lo:.2f}, {hi:.2f}] mag: no injection can make f precise outside it. Choose "
-                          "magnitudes inside it or widen injection.mag_range.")
     model = config.fit.model if config.fit.model != "none" else "auto"
     # one pass over the pixels for every design fit of every kind, timed with them
     c0 = time.process_time()
@@ -1047,7 +1055,8 @@ def _adaptive_injection(run: RunDirectory, ctx, config: RunConfig, compute: "Com
                                                target=ad.target, uniform_share=ad.uniform_share, magnitudes=mags_f)
             if nxt is None:
                 st.update(done=True, reached=reached,
-                          reason=reason if reached else reason + "; raise --max-nsims or relax --precision")
+                          reason=reason if reached else reason + "; for more, run again into a new --out with a "
+                          "higher --max-nsims or a looser --precision (a run keeps the settings it started with)")
             else:
                 st["design"] = nxt
             if st["done"]:

@@ -209,15 +209,29 @@ def test_the_f_target_is_designed_recorded_reported_and_shown(f_run, capsys):
     assert "sd of f at 23.50, 24.00" in html and (out / "figures" / "adaptive_precision.png").is_file()
 
 
-def test_f_target_magnitudes_outside_the_injected_range_are_refused_before_any_injection(tile, tmp_path):
+def test_f_target_magnitudes_outside_the_injected_range_are_refused_before_anything_is_written(tile, tmp_path):
+    # found by a new user: the check ran in the adaptive stage, after the run had written its first stages, and
+    # the corrected command was then refused as another run in the same folder
     from comest_bayes.errors import ConfigError
 
     out = tmp_path / "run"
     with pytest.raises(ConfigError, match=r"adaptive.magnitudes \[30.0\] \(--precision-at\) must lie inside"):
         run_pipeline(_options(tile), _config("adaptive.precision=0.01", "adaptive.target=f", "adaptive.magnitudes=30"),
                      out, log=lambda s: None, compute=ComputeOptions(executor="serial", progress=False))
-    sims = out / "sims"
-    assert not sims.exists() or not any(p.is_file() for p in sims.rglob("*"))
+    assert not out.exists() or not any(out.iterdir())
+
+
+def test_adaptive_settings_without_a_precision_or_with_an_infinite_one_are_refused():
+    from comest_bayes.api import config_from_options
+    from comest_bayes.errors import ConfigError
+
+    with pytest.raises(ConfigError, match=r"--precision-at given without --precision \(adaptive.precision\)"):
+        config_from_options(precision_at=[23.5])
+    with pytest.raises(ConfigError, match=r"--max-nsims given without --precision"):
+        config_from_options(max_nsims=5)
+    with pytest.raises(ConfigError, match=r"invalid adaptive.precision = inf"):
+        config_from_options(precision=float("inf"))
+    assert config_from_options(precision=0.02, max_nsims=5).adaptive.max_nsims == 5
 
 
 def test_precision_at_on_the_command_line_sets_the_f_target():

@@ -118,6 +118,38 @@ def test_a_runner_keeps_its_workers_across_batches():
     assert not any(_running(pid) for pid in workers)
 
 
+def test_ctrl_c_stops_a_busy_worker_and_leaves_an_idle_one_to_the_next_batch():
+    # Found by a new user: a Ctrl-C between adaptive batches made the idle workers print tracebacks from the
+    # queue they wait on.  An idle worker now ignores it; a worker running a task stops it, as before, and the
+    # interrupt reaches the main process through the task's result.
+    import threading
+
+    from comest_bayes.pipeline.executors import TaskRunner
+
+    with TaskRunner("processes", 2) as runner:
+        first = []
+        runner.run(_pid_after, [0.2, 0.2], on_result=lambda t, pid: first.append(pid))
+        workers = set(runner._pool._processes)
+        for pid in workers:  # both idle now
+            os.kill(pid, signal.SIGINT)
+        time.sleep(0.5)
+        assert all(_running(pid) for pid in workers)
+        second = []
+        runner.run(_pid_after, [0.2, 0.2], on_result=lambda t, pid: second.append(pid))
+        assert set(second) <= workers and len(second) == 2
+
+        def interrupt_the_busy_ones():
+            time.sleep(1.0)
+            for pid in workers:
+                os.kill(pid, signal.SIGINT)
+
+        threading.Thread(target=interrupt_the_busy_ones, daemon=True).start()
+        t0 = time.monotonic()
+        with pytest.raises(KeyboardInterrupt):
+            runner.run(_pid_after, [30.0, 30.0], on_result=lambda t, pid: None)
+        assert time.monotonic() - t0 < 15  # the 30-s tasks stopped at the interrupt
+
+
 def test_serial_runner_runs_here_in_order():
     from comest_bayes.pipeline.executors import TaskRunner
 
