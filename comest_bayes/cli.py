@@ -302,7 +302,8 @@ def _final_summary(result, log, report=None) -> None:
         if fitted is not None:
             text += (f"; {model['name']} posterior {fitted:.2f} "
                      f"[{model['m50']['lo68']:.2f}, {model['m50']['hi68']:.2f}] (68%)")
-        log(text + f"  ({info['counts']['usable']} injections, {info['counts']['realizations']} realizations)")
+        nreal = info['counts']['realizations']
+        log(text + f"  ({info['counts']['usable']} injections, {nreal} realization{'' if nreal == 1 else 's'})")
     log(f"done: outputs in {result.out_dir} ({layout.SUMMARY}, catalogs/, maps/)")
     if report is not None:
         log(f"report: {report}")

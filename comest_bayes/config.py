@@ -618,6 +618,10 @@ def _coerce(section: str, name: str, default: Any, value: Any) -> Any:
                 raise ValueError
             return value
     except (TypeError, ValueError):
+        if isinstance(default, tuple):
+            want = ("a comma-separated list of names, e.g. point,buldisk" if default and isinstance(default[0], str)
+                    else "a comma-separated list of numbers, e.g. 23.5,24.0")
+            raise ConfigError(f"invalid {key} = {value!r}: expected {want}.") from None
         raise ConfigError(
             f"invalid {key} = {value!r}: expected a value of type {type(default).__name__} "
             f"like the default {default!r}."

@@ -177,6 +177,8 @@ def test_overrides_in_every_documented_form_give_the_same_configuration():
     assert config_from_options(overrides={"injection.nsims": 3}, nsims=7).injection.nsims == 7  # the shortcut wins
     with pytest.raises(ConfigError, match=r"cannot read the override 'thresh': 2\.5"):
         load_config(overrides={"thresh": 2.5})
+    with pytest.raises(ConfigError, match=r"adaptive.magnitudes = \['foo'\]: expected a comma-separated list of numbers"):
+        load_config(overrides={"adaptive.magnitudes": "foo"})
 
 
 def test_unknown_section(tmp_path):

@@ -63,7 +63,10 @@ def format_info(info: dict) -> str:
             + " per arcmin^2)"
     else:
         density = "density automatic"
-    lines.append(f"config: kinds {', '.join(cfg.get('kinds') or [])}; {cfg.get('nsims')} realizations per kind; "
+    adaptive = cfg.get("adaptive")
+    count = (f"adaptive batches of at most {adaptive.get('max_nsims')} realizations per kind" if adaptive
+             else f"{cfg.get('nsims')} realizations per kind")
+    lines.append(f"config: kinds {', '.join(cfg.get('kinds') or [])}; {count}; "
                  f"{density}; model {cfg.get('model')}; seed {cfg.get('seed')}")
     rng = cfg.get("range") or {}
     if rng.get("mag_range"):
@@ -79,10 +82,16 @@ def format_info(info: dict) -> str:
     else:
         lines.append("stages done: none")
     if info["realizations"]:
-        nsims = cfg.get("nsims")
-        lines.append("realizations on disk: " + ", ".join(f"{k} {n}/{nsims}" for k, n in info["realizations"].items()))
+        if adaptive:  # the batches stop at the precision or at the cap: no count is the "whole"
+            lines.append("realizations on disk: " + ", ".join(f"{k} {n}" for k, n in info["realizations"].items())
+                         + f" (adaptive; at most {adaptive.get('max_nsims')} per kind)")
+        else:
+            nsims = cfg.get("nsims")
+            lines.append("realizations on disk: " + ", ".join(f"{k} {n}/{nsims}" for k, n in info["realizations"].items()))
     if not info["kinds"]:
-        lines.append(f"results: none yet (no {layout.SUMMARY}); rerun the same command to finish the run")
+        advice = ("the run is still going" if info.get("status") == "running"
+                  else "rerun the same command to finish the run")
+        lines.append(f"results: none yet (no {layout.SUMMARY}); {advice}")
     for kind, k in info["kinds"].items():
         c = k.get("counts") or {}
         lines.append(f"{kind}: {c.get('detected', 0)}/{c.get('usable', 0)} usable injections detected in "

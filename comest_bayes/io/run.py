@@ -423,6 +423,7 @@ def _facts(run: "Run") -> dict:
     else:
         status = "partial"
     depth = ((summary or {}).get("depth") or {}).get("point_source_5sigma")
+    adaptive_cfg = config.get("adaptive") or {}
     return {
         "path": str(root),
         "status": status,
@@ -440,6 +441,9 @@ def _facts(run: "Run") -> dict:
             "provenance": image.get("provenance") or {},
         },
         "config": {"kinds": injection.get("kinds"), "nsims": injection.get("nsims"),
+                   # an adaptive run's realizations are its batches', up to max_nsims (its nsims is unused)
+                   "adaptive": ({k: adaptive_cfg.get(k) for k in ("precision", "target", "magnitudes", "max_nsims")}
+                                if (adaptive_cfg.get("precision") or 0) > 0 else None),
                    "density": injection.get("density"), "model": (config.get("fit") or {}).get("model"),
                    "seed": config.get("seed"),
                    # the density each kind was injected at (the automatic choice when ``density`` is 0)

@@ -794,7 +794,7 @@ def _injection_stages(run: RunDirectory, image: ImageData, det: DetectionResult,
         nempty = len(done) - len(np.unique(np.asarray(merged.injected["realization"]))) \
             if len(merged.injected) else len(done)
         log(f"ratios: {kind}: {c['detected']}/{c['usable']} usable injections detected, {c['false']} false "
-            f"detections; binned m50 = {kinds[kind]['m50_binned'] if kinds[kind]['m50_binned'] is None else round(kinds[kind]['m50_binned'], 2)}"
+            f"detections; binned m50 = {'undefined' if kinds[kind]['m50_binned'] is None else format(kinds[kind]['m50_binned'], '.2f')}"
             + (f"; {nempty} of {len(done)} realizations held no injection" if nempty else ""))
         if 0 < c["usable"] < FEW_USABLE_INJECTIONS:  # the preflight expected more, or warned already
             log(f"warning: ratios: {kind}: only {c['usable']} usable injections: its completeness and m50 are "
@@ -1064,6 +1064,7 @@ def _adaptive_injection(run: RunDirectory, ctx, config: RunConfig, compute: "Com
                     f"{st['reason']}")
         k += 1
     summary = {"precision": ad.precision, "target": ad.target, "uniform_share": ad.uniform_share,
+               "max_nsims": ad.max_nsims,
                **({"magnitudes": list(mags_f)} if at_f else {}),
                "kinds": {kind: {"reached": st["reached"], "reason": st["reason"], "realizations": st["n"],
                                 "batches": st["batches"]} for kind, st in state.items()}}

@@ -773,7 +773,8 @@ def write_report(run_dir, out=None, *, log: Callable[[str], None] | None = None,
     log = log or (lambda s: None)
     t0 = time.perf_counter()
     if not Path(run_dir).is_dir():
-        raise RunDirectoryError(f"{str(run_dir)!r} is not a directory; give the --out directory of a comest-bayes run.")
+        what = "is not a directory" if Path(run_dir).exists() else "does not exist"
+        raise RunDirectoryError(f"{str(run_dir)!r} {what}; give the --out directory of a comest-bayes run.")
     for name, value, least in (("size", size, 16), ("dpi", dpi, 10)):
         if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < least:
             raise InputError(f"{name} must be a whole number of at least {least}, got {value!r}.")

@@ -142,6 +142,11 @@ def test_info_tells_how_the_adaptive_injection_ended(adaptive_run, capsys):
     assert "adaptive injection: target m50 half-width 0.02" in text
     assert f"point: {'reached' if ad['reached'] else 'NOT reached'} in {len(ad['batches'])} batches" in text
     assert f"reported fit logistic: m50 half-width {ad['reported']['m50_halfwidth']:.4f}" in text
+    # found by a new user: a finished adaptive run read as incomplete (its unused nsims as the whole)
+    n = ad["realizations"]
+    assert "adaptive batches of at most 6 realizations per kind" in text and "realizations per kind; " in text
+    assert f"realizations on disk: point {n} (adaptive; at most 6 per kind)" in text
+    assert json.loads((out / "summary.json").read_text())["adaptive"]["max_nsims"] == 6
 
 
 

@@ -395,6 +395,9 @@ def test_report_options_and_the_extrapolation_label_of_a_purity_model(tmp_path):
     for bad in ({"size": 0}, {"size": 12.5}, {"dpi": 0}):
         with pytest.raises(InputError, match="must be a whole number of at least"):
             write_report(tmp_path, **bad)
+    from comest_bayes.errors import RunDirectoryError
+    with pytest.raises(RunDirectoryError, match="'.*nowhere' does not exist; give the --out directory"):
+        write_report(tmp_path / "nowhere")
     entry = {"median": 26.1, "lo68": 25.9, "hi68": 26.3, "extrapolated": True}
     assert _interval(entry).endswith("extrapolated: outside the injected magnitudes")
     assert _interval(entry, purity=True).endswith("extrapolated: outside the measured magnitudes of the detections")
