@@ -726,6 +726,7 @@ def _injection_stages(run: RunDirectory, image: ImageData, det: DetectionResult,
     design_maps = {}  # the adaptive design's pass over the maps, which the fit stage reuses
     if config.adaptive.enabled:
         t0 = time.perf_counter()
+        earlier = sum(1 for kind in inj.kinds for _ in sims.glob(layout.realization_glob(kind)))
         nsims, adaptive_summary = _adaptive_injection(run, ctx, config, compute, log, det.noise, image.mask,
                                                       mag_range, cpu, maps_out=design_maps)
         timings["inject"] = round(time.perf_counter() - t0, 3)
@@ -754,7 +755,8 @@ def _injection_stages(run: RunDirectory, image: ImageData, det: DetectionResult,
             + (f"; {len(failures)} failed" if failures else ""))
     elif adaptive_summary is not None:
         log(f"inject: {ndone} realizations in adaptive batches ("
-            + ", ".join(f"{k} {n}" for k, n in nsims.items()) + f") in {timings['inject']:.1f} s")
+            + ", ".join(f"{k} {n}" for k, n in nsims.items()) + f") in {timings['inject']:.1f} s"
+            + (f" ({earlier} done earlier)" if earlier else ""))
     else:
         log(f"inject: all {ndone} realizations done earlier")
 

@@ -91,6 +91,8 @@ def test_a_rerun_resumes_without_new_injections_and_the_same_numbers(adaptive_ru
     assert after["adaptive"] == before["adaptive"]
     assert after["kinds"]["point"]["m50_binned"] == before["kinds"]["point"]["m50_binned"]
     assert not any(line.startswith("inject:") and "to run" in line for line in lines)
+    n = before["adaptive"]["kinds"]["point"]["realizations"]
+    assert any(line.startswith("inject:") and line.endswith(f"({n} done earlier)") for line in lines), lines
 
 
 def test_the_pilot_is_the_published_design_and_the_transfer_does_not_depend_on_the_design(adaptive_run, tile,
