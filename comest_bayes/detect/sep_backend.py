@@ -190,11 +190,19 @@ def measure(data_sub, objs, *, noise, mask, back, config: DetectionConfig, zerop
     ny, nx = data_sub.shape
     x = objs["x"].astype(float)
     y = objs["y"].astype(float)
-    a = np.maximum(objs["a"].astype(float), 1e-3)
-    b = np.maximum(objs["b"].astype(float), 1e-3)
+    a, b, theta = (objs[k].astype(float) for k in ("a", "b", "theta"))
+    # a faint object's second moments can be negative (noise): SEP then gives a NaN axis, which its
+    # apertures refuse ("invalid aperture parameters").  Such an object is measured in the circle of
+    # its own area (radius sqrt(npix / pi)), and its catalog shape is that circle.
+    shapeless = ~(np.isfinite(a) & np.isfinite(b) & np.isfinite(theta))
+    if shapeless.any():
+        radius = np.sqrt(objs["npix"][shapeless] / np.pi)
+        a[shapeless], b[shapeless], theta[shapeless] = radius, radius, 0.0
+    a = np.maximum(a, 1e-3)
+    b = np.maximum(b, 1e-3)
     # float32(pi/2) exceeds pi/2 in float64, which sep.sum_ellipse rejects ("invalid aperture
     # parameters") for objects aligned with the y axis; clip back to SEP's range.
-    theta = np.clip(objs["theta"].astype(float), -np.pi / 2, np.pi / 2)
+    theta = np.clip(theta, -np.pi / 2, np.pi / 2)
     flags = np.zeros(n, dtype=np.int64)
     flags[(objs["flag"] & sep.OBJ_MERGED) != 0] |= FLAG_BLENDED
     flags[(objs["flag"] & sep.OBJ_DOVERFLOW) != 0] |= FLAG_DEBLEND_OVERFLOW
@@ -242,7 +250,7 @@ def measure(data_sub, objs, *, noise, mask, back, config: DetectionConfig, zerop
     mag_aper, magerr_aper, ra, dec = derived["mag_aper"], derived["magerr_aper"], derived["ra"], derived["dec"]
     return {
         "id": np.arange(1, n + 1), "x": x, "y": y, "xwin": xwin, "ywin": ywin, "ra": ra, "dec": dec,
-        "a": objs["a"], "b": objs["b"], "theta": theta, "npix": objs["tnpix"], "peak": objs["peak"],
+        "a": a, "b": b, "theta": theta, "npix": objs["tnpix"], "peak": objs["peak"],
         "flux_iso": objs["flux"], "kron_radius": np.where(kron > 0, scale, 0.0) if n else kron, "flux_auto": flux_auto, "fluxerr_auto": fluxerr_auto,
         "mag_auto": mag_auto, "magerr_auto": magerr_auto, "snr_auto": snr, "flux_aper": flux_aper,
         "fluxerr_aper": fluxerr_aper, "mag_aper": mag_aper, "magerr_aper": magerr_aper,

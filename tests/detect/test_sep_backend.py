@@ -419,6 +419,31 @@ def test_object_aligned_with_the_y_axis_is_measured():
     assert np.isfinite(obj["flux_auto"]) and obj["flux_auto"] > 0
 
 
+def test_an_object_without_a_shape_is_measured_in_the_circle_of_its_area(monkeypatch):
+    # Found by a new user on a demo tile without its weight map: a faint object's second moments were negative
+    # (x2 = -3.5), SEP gave b = NaN, and sep.sum_ellipse aborted the run ("invalid aperture parameters").
+    import comest_bayes.detect.sep_backend as S
+
+    data, c = _flat_patch_image(0.0, "spike")
+    data[c - 1:c + 2, c - 1:c + 2] += 3.0 * 1.5 * 5.0
+    real = S.sep.extract
+    seen = {}
+
+    def extract(*args, **kwargs):
+        out = real(*args, **kwargs)
+        objs = out[0] if isinstance(out, tuple) else out
+        objs["b"][:] = np.nan  # as SEP gives for negative second moments
+        seen["npix"] = np.array(objs["npix"], float)
+        return out
+
+    monkeypatch.setattr(S.sep, "extract", extract)
+    result = detect_array(data, zeropoint=ZP, config=DetectionConfig(filter="none", minarea=2, noise="global"))
+    obj = result.catalog[result.segmentation[c, c] - 1]
+    radius = np.sqrt(seen["npix"][result.segmentation[c, c] - 1] / np.pi)
+    assert obj["a"] == pytest.approx(radius) and obj["b"] == pytest.approx(radius) and obj["theta"] == 0.0
+    assert np.isfinite(obj["flux_auto"]) and obj["flux_auto"] > 0 and np.isfinite(obj["mag_auto"])
+
+
 # --------------------------------------------------------------------------- buffer overflows
 
 
