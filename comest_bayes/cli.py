@@ -7,6 +7,8 @@ User mistakes are one ``error:`` line and exit status 2, operating-system failur
 from __future__ import annotations
 
 import argparse
+import signal
+import threading
 import os
 import sys
 import time
@@ -434,6 +436,11 @@ def main(argv=None) -> int:
         unraisable(info)
 
     sys.unraisablehook = _quiet_interrupt
+    # SIGTERM (a batch scheduler's time limit, kill): unwind as an interrupt does, so that temporary
+    # files and folders (SExtractor's working folder, half-written outputs) are removed on the way out
+    terminate = signal.getsignal(signal.SIGTERM)
+    if threading.current_thread() is threading.main_thread():
+        signal.signal(signal.SIGTERM, _terminated)
     try:
         return handler(args, log)
     except ComestError as exc:
@@ -465,9 +472,22 @@ def main(argv=None) -> int:
     except KeyboardInterrupt:
         print("interrupted: rerun the same command to resume where it stopped.", file=sys.stderr)
         return 130
+    except _Terminated:
+        print("terminated: rerun the same command to resume where it stopped.", file=sys.stderr)
+        return 143
     finally:
         warnings.showwarning = shown
         sys.unraisablehook = unraisable
+        if threading.current_thread() is threading.main_thread():
+            signal.signal(signal.SIGTERM, terminate)
+
+
+class _Terminated(BaseException):
+    """Raised in the main process by SIGTERM (see :func:`main`)."""
+
+
+def _terminated(signum, frame):
+    raise _Terminated()
 
 
 def _one_line(exc: BaseException) -> str:

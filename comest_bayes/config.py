@@ -248,8 +248,13 @@ class SourceFreeConfig:
                "an integer >= 1 pixel, e.g. 100")
         _check(0 < self.warn_replaced <= 1, "sourcefree.warn_replaced", self.warn_replaced,
                "a fraction in (0, 1], e.g. 0.5")
-        _check(self.warn_replaced <= self.max_replaced <= 1, "sourcefree.max_replaced", self.max_replaced,
-               f"a fraction from sourcefree.warn_replaced ({self.warn_replaced}) to 1 (never refuse), e.g. 0.9")
+        _check(self.max_replaced <= 1, "sourcefree.max_replaced", self.max_replaced,
+               "a fraction up to 1 (never refuse), e.g. 0.9")
+        if self.warn_replaced > self.max_replaced:
+            raise ConfigError(f"sourcefree.warn_replaced = {self.warn_replaced} is above sourcefree.max_replaced = "
+                              f"{self.max_replaced}: a run warns from the first fraction and refuses from the second, "
+                              "so warn_replaced must not exceed max_replaced; lower warn_replaced or raise "
+                              "max_replaced (at most 1).")
 
 
 KINDS = ("point", "buldisk", "sersic", "cosmos", "observed")

@@ -459,4 +459,13 @@ def judge_replacement(meta: dict, *, on: str = "sfi", warn_fraction: float = 0.5
             f"the noise drawn into the {target} is {ratio:.2f} times the detection's noise map (more than "
             f"{100 * NOISE_RATIO_WARN:g}% off): the injections see another noise than the image's; check {layout.RMS} "
             f"and {layout.SFI}")
+    kept = meta.get("background_meshes_kept")
+    if kept is not None and not meta.get("background_reestimated"):
+        # then the fill is the detection's own background, so the shift check above compares it with itself
+        out["warnings"].append(
+            f"the sky under the removed sources could not be measured again: {format_percent(kept)} of the "
+            f"background meshes keep enough sky pixels (at least {format_percent(_MESHES_MIN_KEPT)} are needed), so "
+            f"the replaced patches are filled from the detection's background map, which carries the light of the "
+            f"largest sources; a detection on the {target} inside a replaced patch may be that light (check "
+            f"{layout.BACKGROUND}, {layout.SFI})")
     return out

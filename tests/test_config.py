@@ -291,3 +291,13 @@ def test_noise_level_and_clean_zone_settings():
         load_config(overrides=["detection.noise_level=measured"])
     with pytest.raises(ConfigError, match=r"invalid matching\.exclude_clean_zone = 'often'.*type bool"):
         load_config(overrides=["matching.exclude_clean_zone=often"])
+
+
+def test_a_warning_fraction_above_the_refusal_names_both_settings():
+    # found by a new user: --set sourcefree.warn_replaced=0.95 was blamed on max_replaced, which they had not set
+    with pytest.raises(ConfigError, match=r"sourcefree.warn_replaced = 0.95 is above sourcefree.max_replaced = 0.9"):
+        load_config(overrides=["sourcefree.warn_replaced=0.95"])
+    with pytest.raises(ConfigError, match=r"invalid sourcefree.max_replaced = 1.5: expected a fraction up to 1"):
+        load_config(overrides=["sourcefree.max_replaced=1.5"])
+    both = load_config(overrides=["sourcefree.warn_replaced=0.95", "sourcefree.max_replaced=1"]).sourcefree
+    assert (both.warn_replaced, both.max_replaced) == (0.95, 1.0)

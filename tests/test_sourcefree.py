@@ -28,7 +28,7 @@ from conftest import crowded_field
 from comest_bayes.config import SourceFreeConfig
 from comest_bayes.detect.sep_backend import detect_array
 from comest_bayes.errors import InputError
-from comest_bayes.sourcefree import build_source_free, dilated_footprint, judge_replacement, removal_radii
+from comest_bayes.sourcefree import format_percent, build_source_free, dilated_footprint, judge_replacement, removal_radii
 
 ZP = 30.0
 
@@ -343,6 +343,12 @@ def test_too_few_sky_meshes_keep_the_detection_background():
     assert np.median(det.background) == pytest.approx(np.median(fill), abs=1.0)
     assert 95.0 < np.median(fill) < 105.0
     assert meta["background_shift_sigma"] == pytest.approx(0.0, abs=1e-6)
+    # then the shift check compares the fill with itself: the run says the sky could not be measured again
+    # (found by a new user on the DECam N6 cutout, where one galaxy fills the frame)
+    lines = judge_replacement(meta, max_fraction=1.0)["warnings"]
+    said = [line for line in lines if "could not be measured again" in line]
+    assert len(said) == 1 and f"{format_percent(meta['background_meshes_kept'])} of the background meshes" in said[0]
+    assert f"at least {format_percent(0.5)} are needed" in said[0]
 
 
 def test_the_fill_is_checked_against_the_detection_maps(clean):

@@ -92,8 +92,8 @@ def reference(tile, tmp_path_factory):
     return out
 
 
-def _kill_at(case: str, tile, out: Path, tmp_path: Path) -> None:
-    """Run the CLI in a child until it reaches ``case``'s point, then SIGKILL it."""
+def _kill_at(case: str, tile, out: Path, tmp_path: Path, sig=signal.SIGKILL) -> str:
+    """Run the CLI in a child until it reaches ``case``'s point, then send it ``sig`` (SIGKILL); its stderr."""
     driver = tmp_path / "driver.py"
     driver.write_text(DRIVER)
     marker = tmp_path / f"{case}.reached"
@@ -117,10 +117,17 @@ def _kill_at(case: str, tile, out: Path, tmp_path: Path) -> None:
         assert int(pid) == child.pid
         assert package == str(Path(comest_bayes.__file__).resolve()), "the child imported another copy of the package"
     finally:
-        os.kill(child.pid, signal.SIGKILL)
-        child.wait()
+        os.kill(child.pid, sig)
+        try:
+            child.wait(timeout=60)
+        except subprocess.TimeoutExpired:
+            os.kill(child.pid, signal.SIGKILL)
+            child.wait()
+        err = child.stderr.read().decode()
         child.stderr.close()
-    assert child.returncode == -signal.SIGKILL
+    if sig == signal.SIGKILL:
+        assert child.returncode == -signal.SIGKILL
+    return err
 
 
 def _stages(out: Path) -> dict:
@@ -194,6 +201,19 @@ def test_kill_during_the_fits_then_resume_redoes_only_unfinished_fits(case, tile
     assert started == todo
     assert any(s.startswith("fit: buldisk completeness: started: logistic (MAP + Laplace), then importance "
                             "sampling") for s in printed)
+    _assert_same_results(out, reference)
+
+
+def test_sigterm_while_a_posterior_is_written_leaves_no_temporary_file_and_the_run_resumes(tile, reference, tmp_path,
+                                                                                           capsys):
+    # SIGTERM is what a batch scheduler sends at a time limit: the run unwinds as on Ctrl-C (found by a new user
+    # with SExtractor's working folder, 47 MB, left behind), removing what it had half written
+    out = tmp_path / "run"
+    err = _kill_at("posterior", tile, out, tmp_path, sig=signal.SIGTERM)
+    assert "terminated: rerun the same command to resume where it stopped." in err and "Traceback" not in err
+    assert not list(out.rglob(".tmp-*")) and not (out / "run.lock").exists()
+    capsys.readouterr()
+    assert main(_args(tile, out)) == 0
     _assert_same_results(out, reference)
 
 
