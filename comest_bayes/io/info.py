@@ -67,7 +67,7 @@ def format_info(info: dict) -> str:
     count = (f"adaptive batches of at most {adaptive.get('max_nsims')} realizations per kind" if adaptive
              else f"{cfg.get('nsims')} realizations per kind")
     lines.append(f"config: kinds {', '.join(cfg.get('kinds') or [])}; {count}; "
-                 f"{density}; model {cfg.get('model')}; seed {cfg.get('seed')}")
+                 f"{density}; detector {cfg.get('backend') or 'sep'}; model {cfg.get('model')}; seed {cfg.get('seed')}")
     rng = cfg.get("range") or {}
     if rng.get("mag_range"):
         lo, hi = rng["mag_range"]

@@ -441,6 +441,7 @@ def _facts(run: "Run") -> dict:
             "provenance": image.get("provenance") or {},
         },
         "config": {"kinds": injection.get("kinds"), "nsims": injection.get("nsims"),
+                   "backend": (config.get("detection") or {}).get("backend"),
                    # an adaptive run's realizations are its batches', up to max_nsims (its nsims is unused)
                    "adaptive": ({k: adaptive_cfg.get(k) for k in ("precision", "target", "magnitudes", "max_nsims")}
                                 if (adaptive_cfg.get("precision") or 0) > 0 else None),

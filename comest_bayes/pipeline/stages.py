@@ -406,6 +406,9 @@ def _run_pipeline(options: ImageOptions, config: RunConfig, out_dir, *, log, com
         for name, file in (("background", layout.BACKGROUND), ("rms", layout.RMS), ("noise", layout.NOISE)):
             files.append(run.write_image(file, getattr(det, name), output_header(image, image_units=True)))
         run.record_stage("detect", files=files, seconds=det_seconds, meta=det.meta, nsources=len(det.catalog))
+        if det.meta.get("backend") == "sextractor":  # the binary is software of the run too (its version, path)
+            run.update(versions={**(run.state.get("versions") or {}), "source-extractor": det.meta.get("sexver"),
+                                 "source-extractor path": find_sextractor()})
         log(f"detect: {len(det.catalog)} sources with {config.detection.backend} "
             f"(threshold {config.detection.thresh} x {det.meta.get('noisemod', 'sigma')} noise) in {det_seconds:.1f} s")
     else:

@@ -514,3 +514,25 @@ def test_detect_dispatches_to_sextractor_and_cleans_its_workdir(tmp_path):
     assert res.meta["backend"] == "sextractor" and len(res.catalog) >= 8
     assert np.all(np.isnan(res.catalog["ra"]))
     assert list((tmp_path / "scratch").iterdir()) == []
+
+
+@needs_binary
+def test_a_run_with_sextractor_records_its_version_and_info_names_the_detector(tmp_path, capsys):
+    # found by a new user: run.json's software versions listed SEP, not the SExtractor binary the run used
+    import json
+
+    from comest_bayes.cli import main
+    from comest_bayes.sim.demo import MASK_GAP, make_demo_tile, write_demo_tile
+
+    tile = write_demo_tile(make_demo_tile(seed=4, size=256), tmp_path / "tile")
+    out = tmp_path / "run"
+    assert main(["run", str(tile["image"]), "--weight", str(tile["weight"]), "--mask", str(tile["mask"]),
+                 "--mask-bits", str(MASK_GAP), "--out", str(out), "--nsims", "1", "--model", "none",
+                 "--kinds", "point", "--backend", "sextractor", "--ncpu", "1", "--no-report", "--quiet"]) == 0
+    versions = json.loads((out / "run.json").read_text())["versions"]
+    sexver = json.loads((out / "run.json").read_text())["stages"]["detect"]["meta"]["sexver"]
+    assert versions["source-extractor"] == sexver and sexver[0].isdigit()
+    assert versions["source-extractor path"] == sx.find_sextractor()
+    capsys.readouterr()
+    assert main(["info", str(out)]) == 0
+    assert "detector sextractor" in capsys.readouterr().out

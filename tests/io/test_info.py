@@ -73,7 +73,7 @@ def test_info_prints_a_finished_runs_results_and_writes_nothing(finished_run, ca
     assert "stages done: detect (2.5 s), sourcefree (3.2 s), inject (12.0 s), ratios (1.0 s), " \
            "fit_completeness_point (4.0 s)" in out
     assert "realizations on disk: point 3/3, buldisk 3/3" in out
-    assert "3 realizations per kind; 15 per arcmin^2; model auto; seed 7" in out
+    assert "3 realizations per kind; 15 per arcmin^2; detector sep; model auto; seed 7" in out
     assert "point: 700/900 usable injections detected in 3 realizations, 3 false detections" in out
     # the sd where the summary has one (point), none where it does not (buldisk: a run before the sd existed)
     assert "m50 binned: 23.97 +- 0.007 (spread of the first crossing under the bins' binomial noise)" in out
@@ -97,7 +97,7 @@ def test_an_automatic_density_is_shown_as_the_density_each_kind_got(finished_run
     (finished_run / "run.json").write_text(json.dumps(state))
     assert main(["info", str(finished_run)]) == 0
     out = capsys.readouterr().out
-    assert "3 realizations per kind; density automatic (point 15, buldisk 7.25 per arcmin^2); model auto" in out
+    assert "3 realizations per kind; density automatic (point 15, buldisk 7.25 per arcmin^2); detector sep; model auto" in out
 
 
 def test_info_json_holds_the_same_facts(finished_run, capsys):
