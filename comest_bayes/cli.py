@@ -7,10 +7,10 @@ User mistakes are one ``error:`` line and exit status 2, operating-system failur
 from __future__ import annotations
 
 import argparse
-import signal
-import threading
 import os
+import signal
 import sys
+import threading
 import time
 import warnings
 from pathlib import Path

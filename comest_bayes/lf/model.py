@@ -792,9 +792,10 @@ def fit_counts(inputs: LFInputs, counts, *, mode: str = "joint", post=None, f_fi
     diag = {**diag, "counts_check": check}
     if check["p_value"] < COUNTS_CHECK_P:
         said = (f"p = {check['p_value']:.2g}" if check["p_value"] > 0 else f"p < {1 / check['replicates']:.2g}")
-        msg = (f"the counts do not follow the fitted {spec.name} model: posterior predictive {said} (Poisson deviance {check['deviance']:.1f} over {check['bins']} bins; see "
-               "counts.png). Check the count model and the magnitude range, and that the completeness is that of "
-               "sources like those counted (--kind): another kind's completeness bends the counts.")
+        msg = (f"the counts do not follow the fitted {spec.name} model: posterior predictive {said} (Poisson "
+               f"deviance {check['deviance']:.1f} over {check['bins']} bins; see counts.png). Check the count model "
+               "and the magnitude range, and that the completeness is that of sources like those counted (--kind): "
+               "another kind's completeness bends the counts.")
         warnings.warn(msg, LFWarning, stacklevel=2)
         warn.append(msg)
     meta = {"seed": int(seed), "seconds": round(time.perf_counter() - t0, 2),

@@ -566,8 +566,8 @@ def magnitude_at_sd(ratio: BinnedRatio, level: float = 0.5, *, seed: Seed = 0) -
     curve is itself random (a 1-of-3 bin on the bright side of a 7-of-8 one makes it), and the
     delta sd was far too small: on a logistic truth (m50 24, w 0.15 mag, injections uniform over
     21-26 mag in 0.1-mag bins, 300 tables per N) ``|m50 - truth| <= sd`` held in 0.27, 0.31,
-    0.44, 0.58 of the tables at 50, 150, 500 and 1,500 injections, against 0.80, 0.91, 0.82 and
-    0.65 with this spread; from 5,000 injections the two agree (20.4 and 22.8 mmag at 5,000,
+    0.44, 0.58 of the tables at 50, 150, 500 and 1,500 injections, against 0.80, 0.91, 0.83 and
+    0.67 with this spread; from 5,000 injections the two agree (20.4 and 22.8 mmag at 5,000,
     11.7 and 11.9 at 20,000; coverage 0.67-0.73) (``benchmarks/bench_binned_m50_interval.py``).
     The drawn crossings are not centred on the observed one (noise makes a first crossing
     brighter, and the draws add noise to the data's), so their spread, not their percentiles,
