@@ -325,7 +325,13 @@ def fit_completeness(outcomes, out=None, *, kind: str = "injections", model: str
 
                 path = scratch / "outcomes.fits"
                 try:
-                    Table(value).write(path)
+                    table = Table(value)
+                    for name in table.colnames:  # FITS keeps no mask of a logical column: keep it as integers
+                        col = table[name]
+                        if col.dtype.kind == "b" and np.ma.is_masked(col):
+                            table[name] = np.ma.MaskedArray(np.ma.getdata(col).astype(np.int16),
+                                                            mask=np.ma.getmaskarray(col))
+                    table.write(path)
                 except Exception as exc:
                     raise InputError(f"outcomes must be a table file or a table (astropy Table, dict of columns); "
                                      f"got {type(value).__name__}: {exc}") from None

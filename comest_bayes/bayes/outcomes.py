@@ -173,13 +173,23 @@ def _colnames(table) -> list[str]:
 
 def outcome_flags(values, column: str = "detected") -> np.ndarray:
     """The outcome column as booleans: a boolean column, or numbers that are all 0 or 1 (else :class:`InputError`)."""
-    raw = np.asarray(values)
+    if np.ma.is_masked(values):
+        n_masked = int(np.count_nonzero(np.ma.getmaskarray(values)))
+        raise InputError(f"column {column!r} has {n_masked} masked (missing) entr{'y' if n_masked == 1 else 'ies'} "
+                         f"of {np.size(values)}: an outcome is known or the row is no injection; drop those rows or "
+                         "fill them with 0 or 1.")
+    raw = np.asarray(np.ma.getdata(values))
     if raw.dtype.kind == "b":
         return raw.astype(bool)
+    if raw.dtype.kind in "US":  # a CSV written from booleans holds the words True / False
+        words = np.char.lower(np.char.strip(raw.astype(str)))
+        if np.all(np.isin(words, ("true", "false"))):
+            return words == "true"
     try:
         vals = raw.astype(np.float64)
     except (TypeError, ValueError):
-        raise InputError(f"column {column!r} must be boolean or 0/1, got dtype {raw.dtype}.") from None
+        raise InputError(f"column {column!r} must be boolean, 0/1 or the words True/False, got dtype {raw.dtype} "
+                         f"(e.g. {raw[:3].tolist()}).") from None
     if not np.all(np.isin(vals, (0.0, 1.0))):
         raise InputError(f"column {column!r} must be boolean or 0/1; found other values "
                          f"(e.g. {vals[~np.isin(vals, (0.0, 1.0))][:3].tolist()}).")

@@ -580,6 +580,7 @@ class CompletenessPosterior:
                                  "from the image for its projection): query positions on or near the image.")
         elif not all(pixel):
             return None, None
+        self._need_positions()
         ny, nx = self.meta["image_shape"]
         xa, ya = np.asarray(x, float), np.asarray(y, float)
         with np.errstate(invalid="ignore"):
@@ -589,6 +590,12 @@ class CompletenessPosterior:
                           "extrapolates there (its depth is that of the nearest edge, its spatial terms continue "
                           "past the edge).", ExtrapolationWarning, stacklevel=3)
         return x, y
+
+    def _need_positions(self) -> None:
+        if self.meta.get("positions") is False:
+            raise InputError("this posterior was fitted to outcomes without positions (comest-bayes fit on a table "
+                             "with no x, y columns): its completeness is the same everywhere. Query it without a "
+                             "position, or fit a table with x and y columns.")
 
     @staticmethod
     def _magnitudes(m) -> np.ndarray:
@@ -742,6 +749,7 @@ class CompletenessPosterior:
         """
         from astropy.io import fits
 
+        self._need_positions()
         ny, nx = self.meta["image_shape"]
         if isinstance(step_pix, bool) or not isinstance(step_pix, (int, np.integer)) or not 1 <= step_pix <= max(ny, nx):
             raise InputError(f"step_pix must be a whole number of pixels from 1 to {max(ny, nx)} (the image is "

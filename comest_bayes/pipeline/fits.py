@@ -9,6 +9,10 @@ noise map and mask), fits it, and writes ``summary.json``, the posterior and a f
 from __future__ import annotations
 
 import math
+import os
+import re
+import shutil
+import tempfile
 import time
 import traceback
 import warnings
@@ -24,12 +28,12 @@ from comest_bayes.bayes.model import padded_size, padding_floor
 from comest_bayes.bayes.outcomes import compress_for, covariates_from_outcomes, outcome_flags
 from comest_bayes.bayes.spec import load_spec
 from comest_bayes.config import RunConfig
-from comest_bayes.errors import InputError
+from comest_bayes.errors import InputError, OutputWriteError
 from comest_bayes.io import layout
 from comest_bayes.io.jsonio import dumps
 from comest_bayes.ratios import binned as R
 from comest_bayes.config import FitConfig
-from comest_bayes.io.rundir import atomic_path
+from comest_bayes.io.rundir import TMP_PREFIX, os_reason
 from comest_bayes.report.plots import save_figure
 from comest_bayes.report.plots.completeness import ratio_curve
 from comest_bayes.report.plots.data import BinnedCurve, PosteriorBand
@@ -156,6 +160,23 @@ def _read_map(path, name: str) -> np.ndarray:
     raise InputError(f"{name} {str(path)!r} holds no 2-D image HDU.")
 
 
+def _pixels(shape, x, y, *, what: str, name: str, advice: str):
+    """Nearest pixel (0-based) of each finite position: ``(ok, iy, ix)``; positions off the map are an error."""
+    x = np.asarray(x, float)
+    y = np.asarray(y, float)
+    ny, nx = shape
+    ok = np.isfinite(x) & np.isfinite(y)
+    outside = ok & ((x < -0.5) | (y < -0.5) | (x >= nx - 0.5) | (y >= ny - 0.5))
+    if outside.any():
+        raise InputError(f"{what}: {int(outside.sum())} of {x.size} positions lie outside the {name} "
+                         f"({ny} x {nx} pixels; x in [{np.min(x[ok]):.1f}, {np.max(x[ok]):.1f}], y in "
+                         f"[{np.min(y[ok]):.1f}, {np.max(y[ok]):.1f}]). Positions must be 0-based pixels of that "
+                         f"map (subtract 1 from SExtractor's X_IMAGE / Y_IMAGE){advice}.")
+    iy = np.clip(np.floor(y[ok] + 0.5).astype(int), 0, ny - 1)
+    ix = np.clip(np.floor(x[ok] + 0.5).astype(int), 0, nx - 1)
+    return ok, iy, ix
+
+
 def noise_at_positions(noise: np.ndarray, x, y, *, what: str) -> np.ndarray:
     """The noise map at each position's nearest pixel (0-based), as a run's outcome table records it.
 
@@ -163,21 +184,26 @@ def noise_at_positions(noise: np.ndarray, x, y, *, what: str) -> np.ndarray:
     than half a pixel outside the map are an error: they are not pixels of this image (1-based
     positions from SExtractor's ``X_IMAGE`` need 1 subtracted).
     """
-    x = np.asarray(x, float)
-    y = np.asarray(y, float)
-    ny, nx = noise.shape
-    ok = np.isfinite(x) & np.isfinite(y)
-    outside = ok & ((x < -0.5) | (y < -0.5) | (x >= nx - 0.5) | (y >= ny - 0.5))
-    if outside.any():
-        raise InputError(f"{what}: {int(outside.sum())} of {x.size} positions lie outside the noise map "
-                         f"({ny} x {nx} pixels; x in [{np.min(x[ok]):.1f}, {np.max(x[ok]):.1f}], y in "
-                         f"[{np.min(y[ok]):.1f}, {np.max(y[ok]):.1f}]). Positions must be 0-based pixels of that "
-                         "map (subtract 1 from SExtractor's X_IMAGE / Y_IMAGE), or give a noise column.")
-    out = np.full(x.size, np.nan)
-    iy = np.floor(y[ok] + 0.5).astype(int)
-    ix = np.floor(x[ok] + 0.5).astype(int)
-    out[ok] = noise[np.clip(iy, 0, ny - 1), np.clip(ix, 0, nx - 1)]
+    ok, iy, ix = _pixels(noise.shape, x, y, what=what, name="noise map", advice=", or give a noise column")
+    out = np.full(ok.size, np.nan)
+    out[ok] = noise[iy, ix]
     return out
+
+
+def _floats(column, name: str, what: str) -> np.ndarray:
+    """A numeric column as float64, its masked (missing) entries NaN."""
+    try:
+        values = np.asarray(np.ma.getdata(column), dtype=np.float64)
+    except (TypeError, ValueError):
+        raise InputError(f"{what}: column {name!r} must hold numbers, got dtype {np.asarray(column).dtype} "
+                         f"(e.g. {np.asarray(column)[:3].tolist()}).") from None
+    if np.ma.is_masked(column):
+        values = np.where(np.ma.getmaskarray(column), np.nan, values)
+    return values
+
+
+#: What ``--kind`` may be: it names the posterior and figure files of ``comest-bayes fit``.
+KIND_NAME = re.compile(r"[A-Za-z0-9][A-Za-z0-9._-]*")
 
 
 def fit_outcome_file(path, out, *, kind: str = "injections", model: str = "auto", columns: dict | None = None,
@@ -229,6 +255,9 @@ def fit_outcome_file(path, out, *, kind: str = "injections", model: str = "auto"
 
     path, out = Path(path), Path(out)
     what = label or f"outcome table {str(path)!r}"
+    if not isinstance(kind, str) or not KIND_NAME.fullmatch(kind):
+        raise InputError(f"kind (--kind) names the files posterior/<kind>_completeness.npz and figures/<kind>_*: "
+                         f"letters, digits, '.', '_' and '-', starting with a letter or digit (no path), got {kind!r}.")
     named = {key: value for key, value in (columns or {}).items() if value is not None}
     unknown = sorted(set(named) - set(OUTCOME_COLUMNS))
     if unknown:
@@ -257,18 +286,35 @@ def fit_outcome_file(path, out, *, kind: str = "injections", model: str = "auto"
         raise InputError(f"output folder {str(out)!r} exists and is not empty; give a new or empty folder "
                          "(nothing is overwritten).")
     load_spec(model)
-    table = Table({"mag": np.asarray(raw[cols["mag"]], float),
+    table = Table({"mag": _floats(raw[cols["mag"]], cols["mag"], what),
                    "detected": outcome_flags(raw[cols["detected"]], cols["detected"])})
     has_xy = cols["x"] in raw.colnames and cols["y"] in raw.colnames
     if has_xy:
-        table["x"] = np.asarray(raw[cols["x"]], float)
-        table["y"] = np.asarray(raw[cols["y"]], float)
+        table["x"] = _floats(raw[cols["x"]], cols["x"], what)
+        table["y"] = _floats(raw[cols["y"]], cols["y"], what)
     if cols["noise"] in raw.colnames:
-        table["noise"] = np.asarray(raw[cols["noise"]], float)
+        table["noise"] = _floats(raw[cols["noise"]], cols["noise"], what)
+    mags = np.asarray(table["mag"], float)
+    good = np.isfinite(mags)
+    if not good.any():
+        raise InputError(f"{what}: none of its {len(table)} magnitudes (column {cols['mag']!r}) is a finite number "
+                         "(NaN, infinite or masked): nothing to fit.")
+    if np.ptp(mags[good]) == 0.0:
+        raise InputError(f"{what}: all {int(good.sum())} finite magnitudes equal {mags[good][0]:g}: a completeness "
+                         "curve needs injections spread over a range of magnitudes (a few tenths of a magnitude "
+                         "at the least).")
     noise = None if noise_map is None else _read_map(noise_map, "noise map").astype(np.float32)
     bad = None if mask is None else _read_map(mask, "mask") != 0
     if noise is not None and bad is not None and noise.shape != bad.shape:
         raise InputError(f"noise map {noise.shape} and mask {bad.shape} differ in shape.")
+    if noise is not None:
+        unusable = ~(np.isfinite(noise) & (noise > 0))
+        if unusable.any():
+            n_new = int(np.count_nonzero(unusable & ~bad)) if bad is not None else int(np.count_nonzero(unusable))
+            bad = unusable if bad is None else bad | unusable
+            if n_new:
+                warnings.warn(f"{n_new} pixels of the noise map are NaN, infinite or <= 0: they are left out of the "
+                              "image average as if masked (a run masks them too).", UserWarning, stacklevel=2)
     shape = None
     for arr in (noise, bad):
         if arr is not None:
@@ -278,21 +324,38 @@ def fit_outcome_file(path, out, *, kind: str = "injections", model: str = "auto"
             raise InputError(f"--image-shape {tuple(image_shape)} differs from the maps' shape {shape}.")
         shape = tuple(int(v) for v in image_shape)
     if shape is None and has_xy:
+        if not np.any(np.isfinite(table["x"]) & np.isfinite(table["y"])):
+            raise InputError(f"{what}: no row has a finite position ({cols['x']!r}, {cols['y']!r}); drop those "
+                             "columns (name others with --x-column / --y-column) or fill them.")
         shape = (int(np.nanmax(table["y"])) + 2, int(np.nanmax(table["x"])) + 2)
+    on_mask = None
+    if bad is not None and has_xy:
+        ok, iy, ix = _pixels(bad.shape, table["x"], table["y"], what=what, name="mask",
+                             advice=", or give the mask of the image the positions belong to")
+        on_mask = np.zeros(len(table), bool)
+        on_mask[ok] = bad[iy, ix]
     noise_from_map = noise is not None and has_xy and "noise" not in table.colnames
     if noise_from_map:
         table["noise"] = noise_at_positions(noise, table["x"], table["y"], what=what)
+    if on_mask is not None and on_mask.any():
+        if on_mask.all():
+            raise InputError(f"{what}: all {len(table)} injections lie on masked pixels of the mask (or on NaN or "
+                             "<= 0 pixels of the noise map): check that the mask's non-zero pixels are the bad ones "
+                             "and that the positions are 0-based pixels of that image.")
+        warnings.warn(f"{int(on_mask.sum())} of {len(table)} injections lie on masked pixels (or on NaN or <= 0 pixels "
+                      "of the noise map): left out of the fit, as a run never counts them.", UserWarning, stacklevel=2)
+        table = table[~on_mask]
+        mags = np.asarray(table["mag"], float)
+        good = np.isfinite(mags)
+        if not good.any() or np.ptp(mags[good]) == 0.0:
+            raise InputError(f"{what}: after leaving out the injections on masked pixels, {int(good.sum())} with a "
+                             "finite magnitude remain, too few magnitudes to fit a curve.")
+    positions = shape is not None
     if shape is None:
-        shape = (2, 2)  # no positions: the image plays no role
+        shape = (2, 2)  # no positions: the image plays no role (the posterior refuses positional queries)
     config = RunConfig(seed=int(seed), fit=FitConfig(model=model))
-    try:
-        out.mkdir(parents=True, exist_ok=True)
-    except OSError as exc:
-        raise InputError(f"output folder {str(out)!r} cannot be created: {exc}") from None
 
     # -- fit
-    mags = np.asarray(table["mag"], float)
-    good = np.isfinite(mags)
     lo = math.floor(np.min(mags[good]) / mag_bin) * mag_bin
     hi = math.ceil(np.max(mags[good]) / mag_bin) * mag_bin
     edges = R.magnitude_edges(lo, hi, mag_bin)
@@ -315,16 +378,49 @@ def fit_outcome_file(path, out, *, kind: str = "injections", model: str = "auto"
                            mask=bad, wcs_header=None, mag_range=(lo, hi), mag_centers=centers,
                            footprint_points=points, log=log)
     binned = R.completeness(mags, np.asarray(table["detected"]).astype(bool), edges)
-    (out / layout.POSTERIOR_DIR).mkdir(exist_ok=True)
-    post.save(out / layout.posterior(kind))
+    if not positions:
+        post.meta["positions"] = False
     record = {**entry.to_dict(), "posterior_file": layout.posterior(kind), "footprint": footprint}
-    summary = {"source": str(path), "kinds": {kind: {"completeness": binned.to_dict(), "model": record}}}
-
+    source = str(path) if label is None else label
+    summary = {"source": source, "kinds": {kind: {"completeness": binned.to_dict(), "model": record}}}
     ax = ratio_curve(BinnedCurve(binned.centers, binned.ratio, binned.lower, binned.upper, binned.n),
                      posterior=PosteriorBand.from_dict(entry.curve, label=entry.name))
-    ax.set_title(f"{kind}: {len(table)} injections from {path.name}")
-    (out / layout.FIGURES_DIR).mkdir(exist_ok=True)
-    save_figure(ax.figure, out / layout.FIGURES_DIR / f"{kind}_completeness")
-    with atomic_path(out / layout.SUMMARY) as tmp:
-        tmp.write_text(dumps(summary, indent=2, fallback=str) + "\n")
+    ax.set_title(f"{kind}: {len(table)} injections from {path.name if label is None else label}")
+
+    # -- write: everything goes to a hidden sibling folder that becomes ``out`` in one rename, so a crash
+    # leaves no half-written folder that looks complete, and of two fits into one new folder only the
+    # first to finish lands (the other is refused: a rename onto a non-empty folder fails)
+    try:
+        out.parent.mkdir(parents=True, exist_ok=True)
+        staging = Path(tempfile.mkdtemp(prefix=f"{TMP_PREFIX}fit-", dir=out.parent))
+    except OSError as exc:
+        raise InputError(f"output folder {str(out)!r} cannot be created: {os_reason(exc)}.") from None
+    try:
+        (staging / layout.POSTERIOR_DIR).mkdir()
+        post.save(staging / layout.posterior(kind))
+        (staging / layout.FIGURES_DIR).mkdir()
+        save_figure(ax.figure, staging / layout.FIGURES_DIR / f"{kind}_completeness")
+        (staging / layout.SUMMARY).write_text(dumps(summary, indent=2, fallback=str) + "\n")
+        staging.chmod(0o777 & ~_umask())
+        try:
+            os.rename(staging, out)  # replaces an empty folder; fails on a non-empty one
+        except OSError as exc:
+            if out.is_dir() and any(out.iterdir()):
+                raise InputError(f"output folder {str(out)!r} was filled by another process while this fit ran; "
+                                 "nothing was overwritten. Give a new or empty folder.") from None
+            raise OutputWriteError(f"could not write {str(out)!r}: {os_reason(exc)}. Free some space or choose "
+                                   "another --out.") from None
+    except OutputWriteError:
+        raise
+    except OSError as exc:
+        raise OutputWriteError(f"could not write {str(out)!r}: {os_reason(exc)}. Free some space or choose "
+                               "another --out.") from None
+    finally:
+        shutil.rmtree(staging, ignore_errors=True)
     return summary
+
+
+def _umask() -> int:
+    mask = os.umask(0)
+    os.umask(mask)
+    return mask

@@ -216,3 +216,157 @@ def test_a_fit_reads_the_noise_map_only_when_it_must():
     _, read = fit_kind(_logistic_outcomes(600), noise=loader, **common)
     assert calls == [1]  # the histogram and the grid share one read
     assert given.magnitudes["m50"]["median"] == read.magnitudes["m50"]["median"]
+
+
+def test_masked_entries_are_missing_values_not_their_fill(tmp_path):
+    """A masked magnitude is dropped like a NaN one (with the warning that counts them), not read as its fill
+    value 0.0; a masked outcome is refused by name instead of being read as its fill value."""
+    from astropy.table import MaskedColumn
+
+    table = _logistic_outcomes(n=2000, seed=5)
+    hidden = np.arange(2000) < 300
+    table["mag"] = MaskedColumn(np.where(hidden, 0.0, table["mag"]), mask=hidden)
+    table.write(tmp_path / "masked_mag.ecsv")
+    with pytest.warns(UserWarning, match="dropped 300 of 2000 outcome rows"):
+        summary = fit_outcome_file(tmp_path / "masked_mag.ecsv", tmp_path / "a", model="logistic",
+                                   image_shape=(100, 200), seed=1)
+    binned = summary["kinds"]["injections"]["completeness"]
+    assert sum(binned["n"]) == 1700 and binned["edges"][0] >= 21.0  # no bin at 0 mag
+    det = _logistic_outcomes(n=500, seed=6)
+    det["detected"] = MaskedColumn(det["detected"].astype(np.int16), mask=np.arange(500) < 7)
+    det.write(tmp_path / "masked_det.fits")
+    with pytest.raises(InputError, match="'detected' has 7 masked \\(missing\\) entries of 500"):
+        fit_outcome_file(tmp_path / "masked_det.fits", tmp_path / "b", model="logistic", image_shape=(100, 200))
+    assert not (tmp_path / "b").exists()
+
+
+def test_the_python_api_keeps_the_mask_of_a_boolean_outcome():
+    import comest_bayes as cb
+
+    table = _logistic_outcomes(n=500, seed=7)
+    table["detected"] = np.ma.MaskedArray(np.asarray(table["detected"]), mask=np.arange(500) < 3)
+    with pytest.raises(InputError, match="3 masked"):
+        cb.fit_completeness(table, model="logistic", image_shape=(100, 200))
+
+
+def test_outcomes_written_as_the_words_true_and_false_are_read(tmp_path):
+    from comest_bayes.bayes.outcomes import outcome_flags
+
+    assert outcome_flags(np.array(["True", "false", " TRUE "])).tolist() == [True, False, True]
+    with pytest.raises(InputError, match="boolean, 0/1 or the words True/False.*'yes'"):
+        outcome_flags(np.array(["yes", "no"]))
+
+
+@pytest.mark.parametrize("mags, message", [
+    (np.full(50, np.nan), "none of its 50 magnitudes .* is a finite number"),
+    (np.full(50, 24.0), "all 50 finite magnitudes equal 24"),
+    (np.array([24.0]), "all 1 finite magnitudes equal 24"),
+])
+def test_tables_with_no_magnitude_range_are_refused_before_anything_is_written(tmp_path, mags, message):
+    Table({"mag": mags, "detected": np.arange(mags.size) % 2 == 0}).write(tmp_path / "t.fits")
+    with pytest.raises(InputError, match=message):
+        fit_outcome_file(tmp_path / "t.fits", tmp_path / "out")
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["t.fits"]
+
+
+@pytest.mark.parametrize("kind", ["../escaped", "a b/c", "", ".hidden"])
+def test_a_kind_that_is_no_plain_name_is_refused(tmp_path, kind):
+    _logistic_outcomes(n=200).write(tmp_path / "t.fits")
+    with pytest.raises(InputError, match="kind \\(--kind\\) names the files"):
+        fit_outcome_file(tmp_path / "t.fits", tmp_path / "out" / "o", kind=kind)
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["t.fits"]
+
+
+def _two_depth_scene(n=4000, seed=8):
+    """Left half 1 mag deeper than the right; a logistic (w 0.15) whose m50 follows the depth."""
+    rng = np.random.default_rng(seed)
+    noise = np.ones((40, 60), np.float32)
+    noise[:, 30:] = 10 ** 0.4
+    x, y, mag = rng.uniform(0, 59, n), rng.uniform(0, 39, n), rng.uniform(21.0, 26.0, n)
+    sig = noise[np.floor(y + 0.5).astype(int), np.floor(x + 0.5).astype(int)]
+    det = rng.uniform(size=n) < 1.0 / (1.0 + np.exp((mag - (24.0 - 2.5 * np.log10(sig))) / 0.15))
+    return Table({"mag": mag, "detected": det, "x": x, "y": y, "noise": sig}), noise
+
+
+def test_unusable_noise_map_pixels_are_masked_not_averaged_at_the_reference_depth(tmp_path):
+    """NaN and zero pixels of a noise map are no footprint: the fit equals the one with those pixels masked
+    explicitly (same outcomes left out, same image average), and it says so. Before, they counted at the
+    reference depth and moved the image-average m50 by ~10 posterior sd without a word."""
+    from astropy.io import fits as afits
+
+    table, noise = _two_depth_scene()
+    table.remove_column("noise")
+    table.write(tmp_path / "t.fits")
+    holed = noise.copy()
+    holed[:, 40:52] = np.nan
+    holed[5:15, 0:10] = 0.0
+    afits.writeto(tmp_path / "holed.fits", holed)
+    afits.writeto(tmp_path / "noise.fits", noise)
+    mask = (~(np.isfinite(holed) & (holed > 0))).astype(np.uint8)
+    afits.writeto(tmp_path / "mask.fits", mask)
+    with pytest.warns(UserWarning, match=f"{int(mask.sum())} pixels of the noise map are NaN, infinite or <= 0"):
+        a = fit_outcome_file(tmp_path / "t.fits", tmp_path / "a", model="logistic_depth", seed=2,
+                             noise_map=tmp_path / "holed.fits")
+    with pytest.warns(UserWarning, match="injections lie on masked pixels"):
+        b = fit_outcome_file(tmp_path / "t.fits", tmp_path / "b", model="logistic_depth", seed=2,
+                             noise_map=tmp_path / "noise.fits", mask=tmp_path / "mask.fits")
+    ma, mb = a["kinds"]["injections"]["model"], b["kinds"]["injections"]["model"]
+    assert ma["m50"] == mb["m50"] and ma["n_outcomes"] == mb["n_outcomes"] < len(table)
+
+
+def test_a_mask_applies_when_the_noise_comes_from_the_table(tmp_path):
+    """--mask with a noise column and no noise map: the injections on masked pixels are left out of the fit
+    and of the footprint the injections sample (as a run never counts them); before, the mask was ignored."""
+    from astropy.io import fits as afits
+
+    table, noise = _two_depth_scene(seed=9)
+    mask = np.zeros(noise.shape, np.uint8)
+    mask[:, 35:] = 1  # most of the shallow half
+    afits.writeto(tmp_path / "mask.fits", mask)
+    table.write(tmp_path / "all.fits")
+    keep = mask[np.floor(table["y"] + 0.5).astype(int), np.floor(table["x"] + 0.5).astype(int)] == 0
+    table[keep].write(tmp_path / "kept.fits")
+    with pytest.warns(UserWarning, match=f"{int((~keep).sum())} of {len(table)} injections lie on masked pixels"):
+        a = fit_outcome_file(tmp_path / "all.fits", tmp_path / "a", model="logistic_depth", seed=3,
+                             mask=tmp_path / "mask.fits")
+    b = fit_outcome_file(tmp_path / "kept.fits", tmp_path / "b", model="logistic_depth", seed=3,
+                         image_shape=noise.shape)
+    ma, mb = a["kinds"]["injections"]["model"], b["kinds"]["injections"]["model"]
+    assert ma["footprint"] == mb["footprint"] == "injections"
+    assert ma["m50"] == mb["m50"]
+
+
+def test_a_folder_filled_while_the_fit_ran_is_not_overwritten(tmp_path, monkeypatch):
+    """The fit writes a hidden sibling folder and renames it onto --out: a second fit that filled the same
+    new folder first keeps its files, this one is refused, and no staging folder is left behind."""
+    import comest_bayes.pipeline.fits as F
+
+    _logistic_outcomes(n=500).write(tmp_path / "t.fits")
+    out = tmp_path / "runs" / "out"
+    real = F.save_figure
+
+    def racing(fig, path):
+        real(fig, path)
+        out.mkdir(parents=True, exist_ok=True)
+        (out / "summary.json").write_text("{\"other\": true}\n")
+
+    monkeypatch.setattr(F, "save_figure", racing)
+    with pytest.raises(InputError, match="filled by another process while this fit ran; nothing was overwritten"):
+        fit_outcome_file(tmp_path / "t.fits", out, model="logistic", image_shape=(100, 200))
+    assert json.loads((out / "summary.json").read_text()) == {"other": True}
+    assert sorted(p.name for p in out.parent.iterdir()) == ["out"]
+
+
+def test_a_posterior_fitted_without_positions_refuses_positional_queries(tmp_path):
+    table = _logistic_outcomes(n=1500)
+    table.remove_columns(["x", "y", "noise"])
+    table.write(tmp_path / "t.fits")
+    fit_outcome_file(tmp_path / "t.fits", tmp_path / "out", model="logistic", seed=1)
+    from comest_bayes.bayes.posterior import CompletenessPosterior
+
+    post = CompletenessPosterior.load(tmp_path / "out" / layout.posterior("injections"))
+    assert post.completeness(24.0).shape == (post.samples.shape[0],)
+    with pytest.raises(InputError, match="fitted to outcomes without positions"):
+        post.completeness(24.0, x=10.0, y=10.0)
+    with pytest.raises(InputError, match="fitted to outcomes without positions"):
+        post.m50_map()
