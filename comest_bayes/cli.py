@@ -241,6 +241,12 @@ def _compute_from_args(args):
                                 progress=_progress_enabled(args))
 
 
+def _bin_width(kind_summary: dict) -> str:
+    """The bin width of a ``comest-bayes fit`` summary's binned completeness, for its log line."""
+    edges = kind_summary["completeness"]["edges"]
+    return f"{edges[1] - edges[0]:.1f}"
+
+
 def _cmd_fit(args, log) -> int:
     from comest_bayes.pipeline.fits import fit_outcome_file
 
@@ -254,8 +260,13 @@ def _cmd_fit(args, log) -> int:
     columns = {name: getattr(args, f"{name}_column") for name in ("mag", "detected", "x", "y", "noise")}
     summary = fit_outcome_file(args.outcomes, args.out, kind=args.kind, model=args.model, columns=columns,
                                noise_map=args.noise_map, mask=args.mask, image_shape=shape, seed=args.seed, log=log)
-    entry = summary["kinds"][args.kind]["model"]
+    kind_summary = summary["kinds"][args.kind]
+    entry = kind_summary["model"]
     m50 = entry.get("m50") or {}
+    if kind_summary.get("m50_binned") is not None:
+        sd = kind_summary.get("m50_binned_sd")
+        log(f"{args.kind}: binned ({_bin_width(kind_summary)}-mag bins): m50 = {kind_summary['m50_binned']:.3f}"
+            + (f" +- {sd:.3f}" if sd is not None else ""))
     if m50.get("median") is not None:
         log(f"{args.kind}: {entry['name']}: m50 = {m50['median']:.3f} [68%: {m50['lo68']:.3f}, {m50['hi68']:.3f}]"
             + (" (extrapolated)" if m50.get("extrapolated") else ""))

@@ -462,7 +462,8 @@ def fit_kind(outcomes: Table, *, kind: str, quantity: str, requested: str, confi
     for w in caught:
         warn.append(str(w.message))
     if np.ptp(cov.m) < 2.0 * config.ratios.mag_bin:
-        text = (f"all {kind} injections lie within {np.ptp(cov.m):.2f} mag (less than two {config.ratios.mag_bin}-mag "
+        who = "injections" if kind == "injections" else f"{kind} injections"
+        text = (f"all {who} lie within {np.ptp(cov.m):.2f} mag (less than two {config.ratios.mag_bin}-mag "
                 f"bins): the shape of the {quantity} curve (its width, m80, m90) is not constrained by the data but by "
                 "the model's form and priors; inject over a range that brackets the transition")
         warnings.warn(text, UserWarning, stacklevel=2)

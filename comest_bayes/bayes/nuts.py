@@ -294,9 +294,15 @@ def nuts_posterior(model, lap, *, seed: int, min_ess: float = 400.0, nchains: in
     converged = bool(min(bulk.min(), tail.min()) >= min_ess and rhat.max() <= RHAT_MAX and ndiv == 0)
     if not converged:
         worst = int(np.argmin(np.minimum(bulk, tail)))
-        issued.append(f"NUTS did not converge: smallest ESS {min(bulk.min(), tail.min()):.0f} ({model.names[worst]}; "
-                      f"wanted >= {min_ess:.0f}), largest R-hat {rhat.max():.3f} (wanted <= {RHAT_MAX}), "
-                      f"{ndiv} divergent transition(s) in {theta.shape[0] * theta.shape[1]} draws"
+        failed = []  # only the criteria that failed
+        if min(bulk.min(), tail.min()) < min_ess:
+            failed.append(f"smallest ESS {min(bulk.min(), tail.min()):.0f} ({model.names[worst]}; wanted >= "
+                          f"{min_ess:.0f})")
+        if rhat.max() > RHAT_MAX:
+            failed.append(f"largest R-hat {rhat.max():.3f} (wanted <= {RHAT_MAX})")
+        if ndiv:
+            failed.append(f"{ndiv} divergent transition(s) in {theta.shape[0] * theta.shape[1]} draws (wanted none)")
+        issued.append("NUTS did not converge: " + ", ".join(failed)
                       + (f"; stopped at its budget of {MAX_GRADIENTS} gradient evaluations ({gradients} used: "
                          f"{np.mean(nleap):.0f} leapfrog steps per draw, a posterior far from any Gaussian)"
                          if over_budget else ""))

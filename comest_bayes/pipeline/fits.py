@@ -382,7 +382,12 @@ def fit_outcome_file(path, out, *, kind: str = "injections", model: str = "auto"
         post.meta["positions"] = False
     record = {**entry.to_dict(), "posterior_file": layout.posterior(kind), "footprint": footprint}
     source = str(path) if label is None else label
-    summary = {"source": source, "kinds": {kind: {"completeness": binned.to_dict(), "model": record}}}
+    m50_binned = R.magnitude_at(binned, 0.5)
+    m50_binned_sd = R.magnitude_at_sd(binned, 0.5, seed=int(seed))
+    summary = {"source": source, "kinds": {kind: {
+        "completeness": binned.to_dict(), "model": record,
+        "m50_binned": None if not math.isfinite(m50_binned) else float(m50_binned),
+        "m50_binned_sd": None if not math.isfinite(m50_binned_sd) else float(m50_binned_sd)}}}
     ax = ratio_curve(BinnedCurve(binned.centers, binned.ratio, binned.lower, binned.upper, binned.n),
                      posterior=PosteriorBand.from_dict(entry.curve, label=entry.name))
     ax.set_title(f"{kind}: {len(table)} injections from {path.name if label is None else label}")

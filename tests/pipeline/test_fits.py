@@ -36,6 +36,10 @@ def test_an_outcome_file_is_fitted_and_every_product_is_written(tmp_path):
     assert (out / layout.FIGURES_DIR / "stars_completeness.png").is_file()
     binned = summary["kinds"]["stars"]["completeness"]
     assert sum(binned["n"]) == 3000
+    # the published binned m50 and its spread, as a run's summary.json has them: 3000 injections over
+    # 6 mag in 0.1-mag bins give ~50 per bin and a binned m50 within ~0.05 mag of the truth
+    m50_binned, m50_binned_sd = summary["kinds"]["stars"]["m50_binned"], summary["kinds"]["stars"]["m50_binned_sd"]
+    assert 0.005 < m50_binned_sd < 0.1 and abs(m50_binned - 24.0) < 4 * m50_binned_sd
 
 
 def test_the_noise_map_is_read_at_each_position_as_a_run_records_it():
