@@ -626,7 +626,19 @@ def _celestial_wcs(header):
         notes.append("astropy had to fix the WCS header: " + "; ".join(fixes))
     if not wcs.has_celestial:
         return None, "; ".join(notes) or None, None
-    return wcs.celestial, "; ".join(notes) or None, None
+    try:
+        celestial = wcs.celestial
+    except Exception as exc:  # wcslib cannot take the sub-image of some distorted WCSs (TPV in a 1-plane cube)
+        try:
+            with warnings.catch_warnings():
+                warnings.simplefilter("ignore")
+                celestial = WCS(header, naxis=2)  # the first two axes, which the image's plane spans
+        except Exception:
+            celestial = None
+        if celestial is None or not celestial.has_celestial:
+            first = " ".join(str(exc).split()) or type(exc).__name__
+            return None, None, first[:200]
+    return celestial, "; ".join(notes) or None, None
 
 
 def wcs_from_stored_header(text: str) -> WCS:

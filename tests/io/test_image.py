@@ -111,6 +111,22 @@ def test_degenerate_axes_are_dropped(write_fits):
     np.testing.assert_array_equal(image.data, data)
 
 
+def test_a_one_plane_cube_with_a_tpv_wcs_reads_as_its_plane(write_fits):
+    """wcslib cannot take the celestial sub-WCS of a TPV header with a third axis ('NULL error object in
+    wcslib', a traceback before); the plane's own two axes give the same sky positions as the 2-D image."""
+    header = wcs_header(zp=25.0, rotation_deg=10.0)
+    header["CTYPE1"], header["CTYPE2"] = "RA---TPV", "DEC--TPV"
+    for axis, terms in ((1, (0.0, 1.0, 0.0, 0.0, 1e-3)), (2, (0.0, 1.0, 0.0, 0.0, -2e-3))):
+        for j, value in enumerate(terms):
+            header[f"PV{axis}_{j}"] = value
+    data = noise_image(4)
+    flat = load_image(write_fits("flat.fits", data, header))
+    cube = load_image(write_fits("cube1.fits", data[np.newaxis], header))
+    assert cube.shape == SHAPE and cube.wcs is not None
+    x, y = np.array([0.0, 30.5, 63.0]), np.array([0.0, 20.0, 47.0])
+    np.testing.assert_allclose(cube.wcs.all_pix2world(x, y, 0), flat.wcs.all_pix2world(x, y, 0), rtol=0, atol=1e-12)
+
+
 def test_big_endian_data_become_native_float32_and_sep_runs(write_fits):
     data = noise_image(3)
     data[20:25, 30:35] += 50.0  # one obvious source
