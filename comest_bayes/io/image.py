@@ -895,6 +895,7 @@ def load_image(path, *, hdu: int | None = None, zp: float | None = None, pixel_s
     # Companions first, so every shape problem is reported before any work.
     noise = None
     bad = ~np.isfinite(data)
+    causes = [(bad.copy(), "NaN or infinite in the image", "is this the right HDU (--hdu)?")]
     if weight is not None:
         wdata, _, _, _, _ = _read_2d(weight, weight_hdu, "weight")
         if wdata.shape != data.shape:
@@ -914,6 +915,8 @@ def load_image(path, *, hdu: int | None = None, zp: float | None = None, pixel_s
             noise = noise.astype(np.float32)
             noise[badw] = np.inf
             bad |= badw
+            causes.append((badw, f"zero, negative or non-finite in the weight map (read as {weight_type})",
+                           "check --weight-type and --weight-hdu"))
             provenance["weight"] = f"{weight} ({weight_type})"
     if mask is not None:
         mdata, _, _, _, _ = _read_2d(mask, mask_hdu, "mask")
@@ -925,19 +928,19 @@ def load_image(path, *, hdu: int | None = None, zp: float | None = None, pixel_s
         else:
             if not np.all(np.isfinite(mdata)):
                 mdata = np.where(np.isfinite(mdata), mdata, 1)
-            if mask_bits is not None:
-                bad |= (mdata.astype(np.int64) & int(mask_bits)) != 0
-            else:
-                bad |= mdata != 0
+            flagged = (mdata.astype(np.int64) & int(mask_bits)) != 0 if mask_bits is not None else mdata != 0
+            bad |= flagged
+            causes.append((flagged, "flagged in the mask" + (f" (bits {mask_bits})" if mask_bits is not None else ""),
+                           "check that the mask's bad pixels are the non-zero ones, and --mask-bits"))
             provenance["mask"] = f"{mask}" + (f" (bits {mask_bits})" if mask_bits is not None else "")
 
     good = None
     if not problems:  # the mask is only right when the companions fit
         if bad.all():
-            problems.append(
-                f"every pixel of {str(path)!r} is masked (non-finite, zero weight or flagged in the mask); "
-                f"check the mask file and --mask-bits, or the weight map"
-            )
+            # name each cause with its share, and the advice of the ones that take the whole image
+            shares = [f"{np.mean(where):.0%} {what}" for where, what, _ in causes if where.any()]
+            advice = [fix for where, _, fix in causes if where.all()] or [fix for where, _, fix in causes if where.any()]
+            problems.append(f"every pixel of {str(path)!r} is unusable ({'; '.join(shares)}): {' '.join(advice)}")
         else:
             good = data[~bad]
             if good.size < 256:

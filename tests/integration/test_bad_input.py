@@ -100,7 +100,7 @@ CASES = [
     ("text_file", [RUN, "{in}/text.fits"], 2, "text.fits' is not a readable FITS file"),
     ("missing_image", [RUN, "{in}/nothing.fits"], 2, "image file '{in}/nothing.fits' does not exist"),
     ("image_is_folder", [RUN, "{in}/conf_dir.toml"], 2, "is not a file"),
-    ("nan_only", [RUN, "{in}/nan.fits"], 2, "every pixel of '{in}/nan.fits' is masked"),
+    ("nan_only", [RUN, "{in}/nan.fits"], 2, "every pixel of '{in}/nan.fits' is unusable (100% NaN or infinite in the image)"),
     ("constant", [RUN, "{in}/constant.fits"], 2, "is constant"),
     ("table_only", [RUN, "{in}/table.fits"], 2, "holds no 2-D image"),
     ("cube", [RUN, "{in}/cube.fits"], 2, "3-D"),

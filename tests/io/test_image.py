@@ -449,13 +449,24 @@ def test_mask_shape_mismatch(write_fits):
 
 
 def test_all_masked_image(write_fits):
+    """Each way of losing every pixel names its own cause and fix, not the files the user never gave."""
     img = write_fits("img.fits", noise_image(), wcs_header(zp=25.0))
-    with pytest.raises(InputError, match=r"every pixel .* is masked.*--mask-bits"):
+    with pytest.raises(InputError, match=r"every pixel .* is unusable \(100% flagged in the mask\): .*--mask-bits"):
         load_image(img, mask=write_fits("m.fits", np.ones(SHAPE, np.int16)))
-    with pytest.raises(InputError, match=r"every pixel .* is masked"):
+    with pytest.raises(InputError, match=r"unusable \(100% NaN or infinite in the image\): is this the right HDU") \
+            as info:
         load_image(write_fits("nan.fits", np.full(SHAPE, np.nan, np.float32), wcs_header(zp=25.0)))
-    with pytest.raises(InputError, match=r"every pixel .* is masked.*weight map"):
+    assert "--mask" not in str(info.value) and "weight" not in str(info.value)  # (the tmp path holds "mask")
+    with pytest.raises(InputError, match=r"unusable \(100% zero, negative or non-finite in the weight map \(read as "
+                                         r"ivar\)\): check --weight-type"):
         load_image(img, weight=write_fits("w.fits", np.zeros(SHAPE, np.float32)))
+    # two partial causes that together take every pixel: both shares, both fixes
+    half = np.zeros(SHAPE, np.int16)
+    half[:, :32] = 1
+    weight = np.ones(SHAPE, np.float32)
+    weight[:, 32:] = 0.0
+    with pytest.raises(InputError, match=r"\(50% zero, .*; 50% flagged in the mask\): check --weight-type.*--mask-bits"):
+        load_image(img, weight=write_fits("w2.fits", weight), mask=write_fits("m2.fits", half))
 
 
 def test_nearly_all_masked_image(write_fits):
