@@ -591,6 +591,10 @@ TRUTHS: dict[str, Truth] = {t.name: t for t in (
     InverseFluxTruth(),
     LongTailTruth(),
     TwoPopulationTruth(),
+    TwoPopulationTruth(name="shoulder", sep=0.8, w=0.08,
+                       description=("a flat shoulder at m50: 50/50 mixture of narrow logistics (w = 0.08) with m50 "
+                                    "0.8 mag apart (two depths of a mosaic without a weight map), plateau 0.98, "
+                                    "floor 0.005")),
     StudentTruth(),
     VaryingWidthTruth(),
     LogisticTruth(),
