@@ -134,7 +134,8 @@ def load_cosmos(config: InjectionConfig | None = None, *, directory=None, file_n
     if absent:
         raise InputError(f"the COSMOS catalog {file_name!r} in {str(directory)!r} needs image file(s) that are "
                          f"missing: {', '.join(absent)}. Download the complete sample (e.g. "
-                         f"galsim_download_cosmos) or point injection.cosmos_dir to a complete one.")
+                         f"galsim_download_cosmos) and point injection.cosmos_dir to it, with injection.cosmos_file "
+                         f"set to its catalog's name (e.g. real_galaxy_catalog_25.2.fits), or give a complete one.")
     n = len(columns["GAL_FILENAME"])
     if n == 0:
         raise InputError(f"the COSMOS catalog {str(cpath)!r} has no rows.")
