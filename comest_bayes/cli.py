@@ -153,10 +153,10 @@ def build_parser() -> argparse.ArgumentParser:
     img.add_argument("--weight-type", choices=("ivar", "rms", "var"), default=None,
                      help="what the weight map holds (default ivar = inverse variance)")
     img.add_argument("--weight-hdu", type=int, default=None,
-                     help="HDU of the weight map (default: the first that holds an image)")
+                     help="HDU of the weight map (default: first 2-D image)")
     img.add_argument("--mask", default=None, help="mask FITS of the same shape (non-zero = bad)")
     img.add_argument("--mask-hdu", type=int, default=None,
-                     help="HDU of the mask (default: the first that holds an image)")
+                     help="HDU of the mask (default: first 2-D image)")
     img.add_argument("--mask-bits", type=int, default=None, help="only these bits of the mask mark bad pixels")
     _add_config_options(run)
 
