@@ -261,8 +261,12 @@ def _run_realization(task: RealizationTask) -> RealizationResult:
 
         path = Path(ctx.image_dir) / layout.realization_image(kind, index)
         path.parent.mkdir(parents=True, exist_ok=True)
+        # the base image's header (its WCS, BUNIT, zero point) says what the pixels are, as sfi.fits does
+        header = fits.getheader(ctx.base_path)
+        header["INJKIND"] = (kind, "kind of the injected sources (truth: sims/<kind>/rNNNNN.fits)")
+        header["INJREAL"] = (int(index), "realization index")
         with atomic_path(path) as tmp:
-            fits.PrimaryHDU(image).writeto(tmp)
+            fits.PrimaryHDU(image, header=header).writeto(tmp)
         seconds["image"] = time.perf_counter() - t2
         t2 = time.perf_counter()
     det = _detect(image, mask, noise, ctx)

@@ -564,13 +564,15 @@ def _small_context(tmp_path, *, noise_mode="background", nan_at=None, mask_block
     if nan_at is not None:
         base[nan_at] = np.nan
     paths = {name: tmp_path / f"{name}.fits" for name in ("base", "mask", "noise", "baseline")}
-    fits.PrimaryHDU(base).writeto(paths["base"])
+    header = tan_header(shape, PIXEL_SCALE)
+    base_header = header.copy()
+    base_header["BUNIT"] = "adu"  # as the run's sfi.fits carries the image's unit
+    fits.PrimaryHDU(base, header=base_header).writeto(paths["base"])
     fits.PrimaryHDU(mask).writeto(paths["mask"])
     fits.PrimaryHDU(sigma.astype(np.float32)).writeto(paths["noise"])
     detection = DetectionConfig(back_size=32)
     clean = np.where(mask == 1, SKY, np.nan_to_num(base, nan=SKY))
     detect_array(clean, mask=mask.astype(bool), zeropoint=ZP, config=detection).catalog.write(paths["baseline"])
-    header = tan_header(shape, PIXEL_SCALE)
     ctx = recovery.SimContext(
         base_path=str(paths["base"]), mask_path=str(paths["mask"]), noise_path=str(paths["noise"]),
         baseline_path=str(paths["baseline"]), detection_path=str(paths["baseline"]), shape=shape,
@@ -610,8 +612,15 @@ def test_a_realization_detects_exactly_as_the_default_detection_path(tmp_path, n
                                    equal_nan=True, err_msg=name)
     assert set(result.seconds) == {"make", "render", "image", "detect", "match", "cpu"}
     # the image written for the user is the rendered one, not the background-subtracted work array
-    written = fits.getdata(tmp_path / "images" / "buldisk" / "image_r00003.fits")
+    written, header = fits.getdata(tmp_path / "images" / "buldisk" / "image_r00003.fits", header=True)
     np.testing.assert_array_equal(written, image)
+    # with the base image's header (WCS, BUNIT, zero point: what the pixels are) and what it holds
+    base_header = fits.getheader(ctx.base_path)
+    assert header["INJKIND"] == "buldisk" and header["INJREAL"] == 3 and header["BUNIT"] == "adu"
+    assert header["CTYPE1"] == "RA---TAN"
+    for key in base_header:
+        if key not in ("SIMPLE", "BITPIX", "NAXIS", "NAXIS1", "NAXIS2", "EXTEND", "COMMENT", "HISTORY", ""):
+            assert header[key] == base_header[key], key
 
 
 def test_a_base_image_with_nan_in_unmasked_pixels_fails_the_realization_clearly(tmp_path):
