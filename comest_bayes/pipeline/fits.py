@@ -350,6 +350,14 @@ def fit_outcome_file(path, out, *, kind: str = "injections", model: str = "auto"
         if not good.any() or np.ptp(mags[good]) == 0.0:
             raise InputError(f"{what}: after leaving out the injections on masked pixels, {int(good.sum())} with a "
                              "finite magnitude remain, too few magnitudes to fit a curve.")
+    if has_xy:
+        keys = np.stack([np.asarray(table[c], float) for c in ("mag", "x", "y")], axis=1)
+        finite = np.all(np.isfinite(keys), axis=1)
+        repeats = int(finite.sum() - len(np.unique(keys[finite], axis=0)))
+        if repeats:
+            warnings.warn(f"{repeats} of {len(table)} rows repeat another row's magnitude and position exactly: an "
+                          "injection listed twice (a table stacked with itself?) counts twice and narrows the "
+                          "intervals. Drop the repeats if they are not distinct injections.", UserWarning, stacklevel=2)
     positions = shape is not None
     if shape is None:
         shape = (2, 2)  # no positions: the image plays no role (the posterior refuses positional queries)

@@ -374,3 +374,12 @@ def test_a_posterior_fitted_without_positions_refuses_positional_queries(tmp_pat
         post.completeness(24.0, x=10.0, y=10.0)
     with pytest.raises(InputError, match="fitted to outcomes without positions"):
         post.m50_map()
+
+
+def test_rows_repeated_exactly_are_warned_about(tmp_path):
+    from astropy.table import vstack
+
+    table = _logistic_outcomes(n=600, seed=11)
+    vstack([table, table[:40]]).write(tmp_path / "t.fits")
+    with pytest.warns(UserWarning, match="40 of 640 rows repeat another row's magnitude and position exactly"):
+        fit_outcome_file(tmp_path / "t.fits", tmp_path / "out", model="logistic", image_shape=(100, 200))
