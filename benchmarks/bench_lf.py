@@ -36,7 +36,7 @@ Reported per method: mean bias of the slope and of log_n with its standard
 error, mean posterior sd against the scatter of the medians, and the fraction
 of replicates whose 68% and 95% intervals hold the truth (binomial standard
 error ``sqrt(p (1 - p) / R)``).  The defaults (1000 injections against about
-2,700 catalog objects in range) make the completeness uncertainty comparable to
+1,400 catalog objects in range; 1,361 on average in the last run) make the completeness uncertainty comparable to
 the Poisson noise of the counts, which is where holding it fixed matters.
 Replicates run in ``--workers`` processes; each is seeded from its index, so
 the numbers do not depend on the worker count.
@@ -50,7 +50,7 @@ pipeline (4 point-source realizations, ``logistic`` completeness), then
 
 Usage::
 
-    python benchmarks/bench_lf.py               # 48 replicates + the rendered mock, ~25 min on 2 cores
+    python benchmarks/bench_lf.py               # 48 replicates + the rendered mock, ~16 min on 2 cores
     python benchmarks/bench_lf.py --replicates 4 --no-render   # quick check
 
 Writes ``benchmarks/results/lf.json`` and ``benchmarks/results/lf.png``.

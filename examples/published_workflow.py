@@ -110,7 +110,8 @@ def _overrides(kind: str, on: str, args) -> list[str]:
         "injection.q_range=[{},{}]".format(*pub["q_range"]),
         f"ratios.mag_bin={args.mag_bin}",
         f"ratios.map_bin_arcmin={pub['map_bin_arcmin']}",
-        # the published method stops at the binned ratios; the Bayesian model is examples/bayesian_fit.py's
+        # the published method stops at the binned ratios; a default `comest-bayes run` adds the Bayesian
+        # model (docs/bayesian.md)
         "fit.model=none",
         "fit.purity_model=none",
     ]

@@ -10,13 +10,14 @@ from __future__ import annotations
 import json
 import math
 import re
+import warnings
 from pathlib import Path
 from typing import Callable
 import numpy as np
 from comest_bayes.lf.counts import CountModel, load_count_spec
 from comest_bayes.errors import ConfigError, InputError, InputFileError
 from comest_bayes.lf import MODES, SAMPLERS
-from comest_bayes.lf.model import build_inputs, effective_area, fit_counts
+from comest_bayes.lf.model import LFWarning, build_inputs, effective_area, fit_counts
 from comest_bayes.lf.result import LFResult
 from comest_bayes.io.jsonio import dumps
 from comest_bayes.io import layout
@@ -37,9 +38,14 @@ def _read_catalog(path: Path, mag_column: str):
     from astropy.table import Table
 
     try:
-        table = Table.read(path, mask_invalid=False)
+        try:
+            table = Table.read(path, mask_invalid=False)  # FITS: NaN stays NaN, not a masked entry
+        except TypeError:  # the other readers (CSV, ECSV, VOTable, ...) take no mask_invalid
+            table = Table.read(path)
     except Exception as exc:  # astropy raises many kinds for unreadable files
-        raise InputFileError(f"catalog {str(path)!r} cannot be read as a FITS table: {exc}.") from None
+        first = " ".join(str(exc).split())[:300]
+        raise InputFileError(f"catalog {str(path)!r} cannot be read as a table (FITS, or a format astropy knows by "
+                             f"the file's extension: .csv, .ecsv, .vot, ...): {first}") from None
     if mag_column not in table.colnames:
         raise InputError(f"catalog {str(path)!r} has no column {mag_column!r}; columns present: {table.colnames}. "
                          f"Pass the magnitude column with --mag-column.")
@@ -48,12 +54,21 @@ def _read_catalog(path: Path, mag_column: str):
     return table
 
 
+def _floats(column) -> np.ndarray:
+    """A column as float64, masked (missing) entries NaN."""
+    values = np.asarray(np.ma.getdata(column), float)
+    return np.where(np.ma.getmaskarray(column), np.nan, values) if np.ma.is_masked(column) else values
+
+
 def _positions(table, wcs_post):
+    """0-based pixel positions from ``xwin, ywin`` or ``x, y`` (any case), else ``ra, dec`` through the WCS."""
+    by_lower = {name.lower(): name for name in table.colnames}
     for cx, cy in (("xwin", "ywin"), ("x", "y")):
-        if cx in table.colnames and cy in table.colnames:
-            return np.asarray(table[cx], float), np.asarray(table[cy], float)
-    if "ra" in table.colnames and "dec" in table.colnames and wcs_post is not None:
-        x, y = wcs_post.all_world2pix(np.asarray(table["ra"], float), np.asarray(table["dec"], float), 0)
+        if cx in by_lower and cy in by_lower:
+            return _floats(table[by_lower[cx]]), _floats(table[by_lower[cy]])
+    if "ra" in by_lower and "dec" in by_lower and wcs_post is not None:
+        ra, dec = _floats(table[by_lower["ra"]]), _floats(table[by_lower["dec"]])
+        x, y = wcs_post.all_world2pix(ra, dec, 0)
         return np.asarray(x, float), np.asarray(y, float)
     return None, None
 
@@ -179,15 +194,38 @@ def run_lf(run_dir, *, kind: str = "point", catalog=None, mag_column: str = "mag
     post = CompletenessPosterior.load(post_path)
     mask = fits.getdata(run / layout.MASK).astype(bool)
     area = effective_area(mask, float(scale))
-    mags = np.asarray(table[mag_column], float)
+    mags = _floats(table[mag_column])
     if mags.ndim == 2:
         mags = mags[:, 0]
     x, y = _positions(table, post.wcs)
+    input_warnings = []
+
+    def say(text):
+        warnings.warn(text, LFWarning, stacklevel=3)
+        input_warnings.append(text)
+
     if x is not None:
-        ix = np.clip(np.floor(x + 0.5).astype(int), 0, mask.shape[1] - 1)
-        iy = np.clip(np.floor(y + 0.5).astype(int), 0, mask.shape[0] - 1)
-        inside = ~mask[iy, ix]
+        unplaced = ~(np.isfinite(x) & np.isfinite(y))
+        if unplaced.any():
+            raise InputError(f"catalog {str(cat_path)!r}: {int(unplaced.sum())} of {len(x)} objects have no finite "
+                             "position, so the mask cannot be applied to them: fix or drop those rows.")
+        ny, nx = mask.shape
+        off = (x < -0.5) | (y < -0.5) | (x >= nx - 0.5) | (y >= ny - 0.5)
+        if off.all():
+            raise InputError(f"catalog {str(cat_path)!r}: all {len(x)} objects lie outside the run's {nx} x {ny}-pixel "
+                             "image; is it the catalog of this image (0-based pixel positions, or ra/dec)?")
+        if off.any():
+            say(f"{int(off.sum())} of {len(x)} catalog objects lie outside the run's image: they are not counted "
+                "(the area is the image's unmasked pixels).")
+        ix = np.floor(x + 0.5).astype(int)
+        iy = np.floor(y + 0.5).astype(int)
+        inside = ~off
+        inside[inside] = ~mask[iy[inside], ix[inside]]
         mags, x, y = mags[inside], x[inside], y[inside]
+    nonfinite = ~np.isfinite(mags)
+    if nonfinite.any():
+        say(f"{int(nonfinite.sum())} of {len(mags)} catalog objects have a non-finite {mag_column} (NaN, infinite or "
+            "masked): they are not counted.")
     rng_ = tuple(float(v) for v in mag_range) if mag_range is not None else _default_range(state, post)
     transfer = transfer_from_outcomes(Table.read(outcomes_path, mask_invalid=False))
     inputs = build_inputs(mags, area_deg2=area, mag_range=rng_, transfer=transfer, x=x, y=y)
@@ -198,6 +236,7 @@ def run_lf(run_dir, *, kind: str = "point", catalog=None, mag_column: str = "mag
         seed = int(((record.state.get("fingerprint") or {}).get("config") or {}).get("seed", 0))
     res = fit_counts(inputs, CountModel(spec), mode=mode, post=post, seed=seed, ncomp=ncomp, min_ess=min_ess,
                      max_steps=max_steps, name=name, kind=kind, log=log, sampler=sampler)
+    res.warnings[:0] = input_warnings
     res.meta.update({"catalog": str(cat_path), "mag_column": mag_column, "run_dir": str(run),
                      "area_source": f"unmasked pixels of {layout.MASK} x (pixel scale from {layout.RUN}, WCS at the centre)^2"})
     out = run / layout.lf_dir(name)

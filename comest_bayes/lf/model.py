@@ -606,8 +606,9 @@ def _range_warnings(inputs: LFInputs, fbar_med, warn: list) -> None:
         outside = ((inputs.grid < t_lo - 0.25) | (inputs.grid > t_hi + 0.25)) & (weight > 0.05 * weight.max())
         if outside.any():
             msg = (f"the fit uses true magnitudes {inputs.grid[outside].min():.2f}-{inputs.grid[outside].max():.2f} "
-                   f"outside the injected range {t_lo:.2f}-{t_hi:.2f}, where the transfer and completeness are "
-                   f"extrapolated; inject over a wider range or narrow --mag-range.")
+                   f"outside {t_lo:.2f}-{t_hi:.2f}, the true magnitudes of the detected injections that measured "
+                   f"the photometric transfer, which is extrapolated there; inject over a wider range or narrow "
+                   f"--mag-range.")
             warnings.warn(msg, LFWarning, stacklevel=3)
             warn.append(msg)
 
@@ -798,6 +799,11 @@ def fit_counts(inputs: LFInputs, counts, *, mode: str = "joint", post=None, f_fi
                "another kind's completeness bends the counts.")
         warnings.warn(msg, LFWarning, stacklevel=2)
         warn.append(msg)
+    # the sampler's own warnings (not converged, ...) are the fit's warnings too, not only its diagnostics'
+    sampler_said = diag.get("warnings", []) if mode != "marginal" else [w for d in per_diag for w in d.get("warnings", [])]
+    for text in dict.fromkeys(sampler_said):
+        if text not in warn:
+            warn.append(text)
     meta = {"seed": int(seed), "seconds": round(time.perf_counter() - t0, 2),
             "completeness_model": None if post is None else post.spec.name,
             "transfer": "identity" if inputs.transfer is None else "measured",

@@ -217,3 +217,44 @@ def test_the_lf_seed_is_the_runs_root_seed_unless_one_is_given(fake_run, tmp_pat
         with pytest.raises(Stop):
             run_lf(run, kind="point", mode="fixed", mag_range=(20.0, 23.5), seed=given, figures=False)
     assert seen == [17, 5]
+
+
+def test_objects_off_the_image_or_without_a_magnitude_are_not_counted_and_said(fake_run, tmp_path):
+    """A catalog wider than the run's image (a survey's) counted its off-image objects on the image's edge
+    pixels and its area: twice the counts for a twice-as-wide catalog, without a word. They are left out now,
+    as are non-finite magnitudes, each with a warning; the fit equals the one on the image's own objects.
+    The wider catalog comes as CSV with upper-case X, Y (astropy's other readers, SExtractor-like names)."""
+    own = Table.read(fake_run / "detection.fits")
+    rng = np.random.default_rng(3)
+    shifted = own.copy()
+    shifted["xwin"] = shifted["xwin"] + 300.0  # the same sky again, beside the 200-pixel image
+    blank = own[:25].copy()
+    blank["mag_auto"] = np.nan
+    blank["xwin"] = rng.uniform(0, 149, len(blank))  # on unmasked pixels: counted, were their magnitudes known
+    wide = Table(np.lib.recfunctions.stack_arrays([own.as_array(), shifted.as_array(), blank.as_array()],
+                                                  usemask=False, asrecarray=False))
+    wide.rename_columns(["xwin", "ywin"], ["X", "Y"])
+    wide.write(tmp_path / "wide.csv")
+    ref = run_lf(fake_run, kind="point", model="powerlaw", mode="fixed", mag_range=(20.0, 23.5), seed=4,
+                 min_ess=200, name="own", figures=False)
+    with pytest.warns(LFWarning) as caught:
+        got = run_lf(fake_run, kind="point", catalog=tmp_path / "wide.csv", model="powerlaw", mode="fixed",
+                     mag_range=(20.0, 23.5), seed=4, min_ess=200, name="wide", figures=False)
+    said = [str(w.message) for w in caught]
+    assert any(f"{len(own)} of {len(wide)} catalog objects lie outside the run's image" in s for s in said), said
+    assert any("25 of" in s and "non-finite mag_auto" in s for s in said), said
+    assert got.n_objects == ref.n_objects
+    assert got.parameter_summary() == ref.parameter_summary()
+    assert any("outside the run's image" in s for s in got.warnings)
+
+
+def test_objects_without_a_position_are_refused_before_the_fit(fake_run, tmp_path):
+    cat = Table.read(fake_run / "detection.fits")
+    cat["xwin"][:7] = np.nan
+    cat.write(tmp_path / "nanpos.fits")
+    with pytest.raises(InputError, match="7 of .* objects have no finite position"):
+        run_lf(fake_run, kind="point", catalog=tmp_path / "nanpos.fits", name="nanpos")
+    Table.read(fake_run / "detection.fits")[:0].write(tmp_path / "x.fits")
+    (tmp_path / "garbage.fits").write_text("not a table\n" * 3)
+    with pytest.raises(InputFileError, match=r"cannot be read as a table \(FITS, or a format astropy knows"):
+        run_lf(fake_run, kind="point", catalog=tmp_path / "garbage.fits")
