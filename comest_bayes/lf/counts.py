@@ -33,7 +33,9 @@ FORMS: dict[str, dict] = {
 }
 
 _DIST_ARGS = {"normal": ("mu", "sigma"), "uniform": ("lo", "hi")}
-_SPEC_KEYS = {"name", "description", "form", "constants", "priors"}
+_SPEC_KEYS = {"name", "description", "form", "constants", "priors", "sampler"}
+#: What a count spec's ``sampler`` may say: the sampler ``--sampler auto`` uses for it ("" = the default rule).
+SPEC_SAMPLERS = ("", "emcee")
 
 
 def log_phi(form: str, params, m, constants: Mapping[str, float]):
@@ -86,6 +88,10 @@ class CountSpec:
     description : str
     source : str
         Where the spec was read from.
+    sampler : str
+        The sampler ``--sampler auto`` uses for this model: ``"emcee"`` for a model whose posterior can
+        have several modes (the double power law's break), which importance sampling of one Laplace
+        approximation cannot see and its Pareto k-hat cannot flag; ``""`` for the default rule.
     """
 
     name: str
@@ -94,6 +100,7 @@ class CountSpec:
     priors: dict
     description: str = ""
     source: str = ""
+    sampler: str = ""
 
     @property
     def params(self) -> tuple:
@@ -102,8 +109,11 @@ class CountSpec:
 
     def to_dict(self) -> dict:
         """Plain-data view (JSON/TOML friendly)."""
-        return {"name": self.name, "form": self.form, "description": self.description,
-                "constants": dict(self.constants), "priors": {k: dict(v) for k, v in self.priors.items()}}
+        out = {"name": self.name, "form": self.form, "description": self.description,
+               "constants": dict(self.constants), "priors": {k: dict(v) for k, v in self.priors.items()}}
+        if self.sampler:
+            out["sampler"] = self.sampler
+        return out
 
 
 def _number(x) -> bool:
@@ -177,7 +187,12 @@ def count_spec_from_mapping(mapping: Mapping[str, Any], *, name: str | None = No
             raise ConfigError(f"priors.{p}{where}: uniform needs hi > lo, got lo={value['lo']}, hi={value['hi']}.")
         priors[p] = {"dist": dist, **{a: float(value[a]) for a in args}}
     desc = data.get("description", "")
-    return CountSpec(name=str(nm), form=form, constants=consts, priors=priors, description=str(desc), source=source)
+    sampler = data.get("sampler", "")
+    if sampler not in SPEC_SAMPLERS:
+        raise ConfigError(f"invalid sampler = {sampler!r}{where}: expected \"emcee\" (the sampler --sampler auto "
+                          "uses for this model) or no key.")
+    return CountSpec(name=str(nm), form=form, constants=consts, priors=priors, description=str(desc), source=source,
+                     sampler=sampler)
 
 
 def list_count_specs() -> list[str]:

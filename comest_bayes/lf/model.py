@@ -699,6 +699,10 @@ def fit_counts(inputs: LFInputs, counts, *, mode: str = "joint", post=None, f_fi
     if mode not in MODES:
         raise ConfigError(f"mode must be one of {list(MODES)}, got {mode!r}.")
     counts = counts if isinstance(counts, CountModel) else CountModel(counts)
+    if sampler == "auto" and counts.spec.sampler:
+        sampler = counts.spec.sampler
+        log(f"lf: sampler {sampler}, as the {counts.spec.name} specification asks for --sampler auto (its posterior "
+            "can have several modes)")
     if post is None and f_fixed is None:
         raise InputError("fit_counts needs a completeness posterior (post=) or a known completeness (f_fixed=).")
     if post is None and mode != "fixed":
