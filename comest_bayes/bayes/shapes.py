@@ -13,8 +13,9 @@ __all__ = ["SPLINE_T0", "SPLINE_H", "spline_knots", "monotone_spline", "richards
 
 #: First knot of the monotone spline in standardised magnitude t = (m - m50) / w.
 SPLINE_T0 = -6.0
-#: Knot spacing in t; the anchor knot (eta = 0) sits at t = 0.
-SPLINE_H = 1.0
+#: Knot spacing in t (half the chord width: features half as wide as the transition are followed);
+#: the anchor knot (eta = 0) sits at t = 0.
+SPLINE_H = 0.5
 
 
 def spline_knots(n_free: int):
@@ -58,16 +59,22 @@ def monotone_spline(t, eta_free):
     t : array
         Standardised magnitudes (any shape).
     eta_free : array, shape (K,)
-        Log-rates at the knots other than the anchor (``K >= 7``).
+        Log-rates at the knots other than the anchor (``K >= 13``).
 
     Returns
     -------
     array, shape of t
-        Decreasing in t, ``S(0) = 0``; ``S(t) = -t`` when ``eta_free = 0``.
+        Decreasing in t, ``S(0) = 0``, ``S(-h) - S(h) = 2 h`` (``h = SPLINE_H``); ``S(t) = -t`` when
+        ``eta_free = 0``.
     """
     n_free = eta_free.shape[0]
     k0 = int(round(-SPLINE_T0 / SPLINE_H))
-    rate = jnp.exp(full_eta(eta_free, k0))                       # (K + 1,)
+    eta = full_eta(eta_free, k0)                                 # (K + 1,)
+    # the chord normalisation: the mean rate over [-h, h] is 1, so S(-h) - S(h) = 2 h whatever the
+    # shape, and w is the transition's chord width there, not the inverse of its slope at m50 alone
+    # (a transition with a shoulder at m50 has a small slope there and steep flanks on both sides)
+    log_c = logaddexp(logaddexp(eta[k0 - 1], eta[k0 + 1]), jnp.log(2.0) + eta[k0]) - jnp.log(4.0)
+    rate = jnp.exp(eta - log_c)
     seg = 0.5 * SPLINE_H * (rate[:-1] + rate[1:])                 # integral over each knot interval
     cum = jnp.concatenate([jnp.zeros(1, dtype=rate.dtype), jnp.cumsum(seg)])  # I(t_k) from t_0
     t_last = SPLINE_T0 + n_free * SPLINE_H

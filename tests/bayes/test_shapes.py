@@ -10,7 +10,7 @@ from comest_bayes.bayes.shapes import SPLINE_H, SPLINE_T0, monotone_spline, rich
 
 jax.config.update("jax_enable_x64", True)
 
-K = 16
+K = 32
 
 
 def test_straight_spline_is_minus_t_everywhere():
@@ -26,9 +26,10 @@ def test_spline_is_anchored_and_monotone_for_any_rates():
         s = np.asarray(monotone_spline(t, eta))
         assert np.all(np.diff(s) < 0)  # strictly decreasing: the rate exp(eta) is positive
         assert float(monotone_spline(jnp.zeros(1), eta)[0]) == pytest.approx(0.0, abs=1e-12)
-        # slope at the anchor t = 0 is -exp(0) = -1 whatever the other rates
-        slope = jax.grad(lambda x: monotone_spline(x[None], eta)[0])(0.0)
-        assert float(slope) == pytest.approx(-1.0, abs=1e-9)
+        # the chord normalisation: S falls by exactly 2h over [-h, h] whatever the rates, while the
+        # slope at the anchor itself is free (a shoulder at m50 has a small one)
+        chord = monotone_spline(jnp.asarray([-SPLINE_H, SPLINE_H]), eta)
+        assert float(chord[0] - chord[1]) == pytest.approx(2.0 * SPLINE_H, abs=1e-12)
 
 
 def test_spline_integrates_the_piecewise_linear_rate():
@@ -37,6 +38,8 @@ def test_spline_integrates_the_piecewise_linear_rate():
     eta = rng.normal(0.0, 0.8, K)
     knots, k0 = spline_knots(K)
     full = np.insert(eta, k0, 0.0)
+    r = np.exp(full)
+    full = full - np.log((r[k0 - 1] + 2.0 * r[k0] + r[k0 + 1]) / 4.0)  # mean rate over [-h, h] is 1
     for t_end in (-9.0, -2.5, 0.3, 4.7, 12.0):
         u = np.linspace(0.0, t_end, 100001)
         # the rate is linear between knots in exp(eta), constant beyond the outer knots (as np.interp)
@@ -49,7 +52,7 @@ def test_spline_integrates_the_piecewise_linear_rate():
 def test_knots_layout():
     knots, k0 = spline_knots(K)
     assert knots[0] == SPLINE_T0 and knots[k0] == 0.0 and knots[1] - knots[0] == SPLINE_H and len(knots) == K + 1
-    with pytest.raises(ValueError, match="at least 7 free knots .* got 3"):
+    with pytest.raises(ValueError, match="at least 13 free knots .* got 3"):
         spline_knots(3)
 
 
