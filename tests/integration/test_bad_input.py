@@ -128,12 +128,14 @@ CASES = [
     # companions
     ("mask_wrong_shape", [RUN, "{in}/good.fits", "--mask", "{in}/mask_wrong.fits"], 2,
      "has shape (64, 128) but the image"),
-    ("mask_everything", [RUN, "{in}/good.fits", "--mask", "{in}/mask_all.fits"], 2, "is masked"),
+    ("mask_everything", [RUN, "{in}/good.fits", "--mask", "{in}/mask_all.fits"], 2,
+     "is unusable (100% flagged in the mask)"),
     ("mask_missing", [RUN, "{in}/good.fits", "--mask", "{in}/nomask.fits"], 2, "mask file '{in}/nomask.fits' does "
                                                                                "not exist"),
     ("weight_wrong_shape", [RUN, "{in}/good.fits", "--weight", "{in}/weight_wrong.fits"], 2,
      "has shape (128, 64) but the image"),
-    ("weight_all_zero", [RUN, "{in}/good.fits", "--weight", "{in}/weight_zero.fits"], 2, "is masked"),
+    ("weight_all_zero", [RUN, "{in}/good.fits", "--weight", "{in}/weight_zero.fits"], 2,
+     "is unusable (100% zero, negative or non-finite in the weight map"),
     ("weight_cut", [RUN, "{in}/good.fits", "--weight", "{in}/weight_cut.fits"], 2, "weight"),
     # configuration
     ("toml_section_is_value", [RUN, "{in}/good.fits", "--config", "{in}/section_value.toml"], 2,
