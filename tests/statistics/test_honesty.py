@@ -67,7 +67,8 @@ def test_a_flat_shoulder_at_m50_is_followed_not_smoothed_over():
     above the truth on the shoulder's bright edge by 18.6 of its posterior sd, with no warning. With the
     chord-normalised spline on half-width knots m50 must lie within 3 posterior sd of the truth, and the
     curve within 4 sd everywhere across the transition: 3.6 sd remain at the edge of the 0.08-mag step,
-    which the knots (0.2 mag apart here) cannot quite follow (docs/bayesian.md, "Known limits")."""
+    which the knots (0.2 mag apart here) cannot quite follow (README, "Where the model is known to
+    fall short")."""
     from astropy.table import Table
     from scipy.optimize import brentq
     from scipy.special import expit
