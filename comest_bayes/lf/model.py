@@ -730,6 +730,14 @@ def fit_counts(inputs: LFInputs, counts, *, mode: str = "joint", post=None, f_fi
     inputs, keep = _support_check(inputs, f_obj_med, fbar_med, warn)
     if f_obj_med.shape[0] == n_before and n_before > 1:
         f_obj_med = f_obj_med[keep]
+    f_bright_end = float(np.interp(inputs.mag_range[0], inputs.grid, fbar_med))
+    if f_bright_end < LOW_COMPLETENESS:
+        # counts where almost nothing is detected constrain the counts model through its form and prior only
+        # (a joint fit over such a range ran 14 minutes to warn of it at the end)
+        raise InputError(f"the completeness is below {LOW_COMPLETENESS} over the whole magnitude range "
+                         f"{inputs.mag_range[0]:.2f}-{inputs.mag_range[1]:.2f} ({f_bright_end:.3f} at its bright end): "
+                         "the counts there say next to nothing about the number counts. Choose a range that starts "
+                         "where the sources are detected (--mag-range; the default starts inside the injected range).")
     _range_warnings(inputs, fbar_med, warn)
 
     comp_samples = None

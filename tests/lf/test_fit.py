@@ -258,3 +258,10 @@ def test_objects_without_a_position_are_refused_before_the_fit(fake_run, tmp_pat
     (tmp_path / "garbage.fits").write_text("not a table\n" * 3)
     with pytest.raises(InputFileError, match=r"cannot be read as a table \(FITS, or a format astropy knows"):
         run_lf(fake_run, kind="point", catalog=tmp_path / "garbage.fits")
+
+
+def test_a_range_where_almost_nothing_is_detected_is_refused_before_sampling(fake_run):
+    # the fake run's completeness is a logistic with m50 23 and w 0.3: 0.018 at 24.2 mag (the catalog reaches 24.6)
+    with pytest.raises(InputError, match=r"completeness is below 0.05 over the whole magnitude range 24.20-25.20"):
+        run_lf(fake_run, kind="point", mode="joint", mag_range=(24.2, 25.2), name="below_five_percent")
+    assert not (fake_run / "lf" / "below_five_percent").exists()
