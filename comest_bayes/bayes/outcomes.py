@@ -17,7 +17,7 @@ import numpy as np
 from comest_bayes.errors import InputError
 from comest_bayes.bayes.spec import ModelSpec, load_spec, resolve_candidates
 
-__all__ = ['image_coordinate', 'depth_covariate', 'Covariates', 'BinomialData', 'covariates_from_outcomes', 'outcome_flags', 'compress', 'compress_for', 'uncompressed', 'covariates_needed', 'covariate_warnings']
+__all__ = ['image_coordinate', 'depth_covariate', 'Covariates', 'BinomialData', 'covariates_from_outcomes', 'column_floats', 'outcome_flags', 'compress', 'compress_for', 'uncompressed', 'covariates_needed', 'covariate_warnings']
 
 _COVARIATE_GROUPS = ("m", "depth", "uv", "size")
 
@@ -171,12 +171,25 @@ def _colnames(table) -> list[str]:
                      f"got {type(table).__name__}.")
 
 
+def column_floats(values, column: str = "", what: str = "table") -> np.ndarray:
+    """A numeric table column as float64, its masked (missing) entries NaN (not their fill values)."""
+    try:
+        out = np.asarray(np.ma.getdata(values), dtype=np.float64)
+    except (TypeError, ValueError):
+        raw = np.asarray(values)
+        raise InputError(f"{what}: column {column!r} must hold numbers, got dtype {raw.dtype} "
+                         f"(e.g. {raw[:3].tolist()}).") from None
+    if np.ma.is_masked(values):
+        out = np.where(np.ma.getmaskarray(values), np.nan, out)
+    return out
+
+
 def outcome_flags(values, column: str = "detected") -> np.ndarray:
     """The outcome column as booleans: a boolean column, or numbers that are all 0 or 1 (else :class:`InputError`)."""
     if np.ma.is_masked(values):
         n_masked = int(np.count_nonzero(np.ma.getmaskarray(values)))
         raise InputError(f"column {column!r} has {n_masked} masked (missing) entr{'y' if n_masked == 1 else 'ies'} "
-                         f"of {np.size(values)}: an outcome is known or the row is no injection; drop those rows or "
+                         f"of {np.size(values)}: every injection was either detected or not; drop those rows or "
                          "fill them with 0 or 1.")
     raw = np.asarray(np.ma.getdata(values))
     if raw.dtype.kind == "b":

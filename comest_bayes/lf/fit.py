@@ -23,6 +23,7 @@ from comest_bayes.io.jsonio import dumps
 from comest_bayes.io import layout
 from comest_bayes.io.run import Run
 from comest_bayes.io.rundir import atomic_path
+from comest_bayes.bayes.outcomes import column_floats
 from comest_bayes.bayes.posterior import CompletenessPosterior
 from comest_bayes.recover.transfer import transfer_from_outcomes
 from comest_bayes.report.plots import save_figure
@@ -54,20 +55,14 @@ def _read_catalog(path: Path, mag_column: str):
     return table
 
 
-def _floats(column) -> np.ndarray:
-    """A column as float64, masked (missing) entries NaN."""
-    values = np.asarray(np.ma.getdata(column), float)
-    return np.where(np.ma.getmaskarray(column), np.nan, values) if np.ma.is_masked(column) else values
-
-
 def _positions(table, wcs_post):
     """0-based pixel positions from ``xwin, ywin`` or ``x, y`` (any case), else ``ra, dec`` through the WCS."""
     by_lower = {name.lower(): name for name in table.colnames}
     for cx, cy in (("xwin", "ywin"), ("x", "y")):
         if cx in by_lower and cy in by_lower:
-            return _floats(table[by_lower[cx]]), _floats(table[by_lower[cy]])
+            return tuple(column_floats(table[by_lower[c]], by_lower[c], "catalog") for c in (cx, cy))
     if "ra" in by_lower and "dec" in by_lower and wcs_post is not None:
-        ra, dec = _floats(table[by_lower["ra"]]), _floats(table[by_lower["dec"]])
+        ra, dec = (column_floats(table[by_lower[c]], by_lower[c], "catalog") for c in ("ra", "dec"))
         x, y = wcs_post.all_world2pix(ra, dec, 0)
         return np.asarray(x, float), np.asarray(y, float)
     return None, None
@@ -194,7 +189,7 @@ def run_lf(run_dir, *, kind: str = "point", catalog=None, mag_column: str = "mag
     post = CompletenessPosterior.load(post_path)
     mask = fits.getdata(run / layout.MASK).astype(bool)
     area = effective_area(mask, float(scale))
-    mags = _floats(table[mag_column])
+    mags = column_floats(table[mag_column], mag_column, f"catalog {str(cat_path)!r}")
     if mags.ndim == 2:
         mags = mags[:, 0]
     x, y = _positions(table, post.wcs)

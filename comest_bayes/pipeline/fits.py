@@ -12,7 +12,6 @@ import math
 import os
 import re
 import shutil
-import tempfile
 import time
 import traceback
 import warnings
@@ -25,7 +24,7 @@ from astropy.table import Table
 
 from comest_bayes.bayes.fit import MIN_CLASS, FitEntry, fit_kind, purity_outcomes
 from comest_bayes.bayes.model import padded_size, padding_floor
-from comest_bayes.bayes.outcomes import compress_for, covariates_from_outcomes, outcome_flags
+from comest_bayes.bayes.outcomes import column_floats, compress_for, covariates_from_outcomes, outcome_flags
 from comest_bayes.bayes.spec import load_spec
 from comest_bayes.config import RunConfig
 from comest_bayes.errors import InputError, OutputWriteError
@@ -190,18 +189,6 @@ def noise_at_positions(noise: np.ndarray, x, y, *, what: str) -> np.ndarray:
     return out
 
 
-def _floats(column, name: str, what: str) -> np.ndarray:
-    """A numeric column as float64, its masked (missing) entries NaN."""
-    try:
-        values = np.asarray(np.ma.getdata(column), dtype=np.float64)
-    except (TypeError, ValueError):
-        raise InputError(f"{what}: column {name!r} must hold numbers, got dtype {np.asarray(column).dtype} "
-                         f"(e.g. {np.asarray(column)[:3].tolist()}).") from None
-    if np.ma.is_masked(column):
-        values = np.where(np.ma.getmaskarray(column), np.nan, values)
-    return values
-
-
 #: What ``--kind`` may be: it names the posterior and figure files of ``comest-bayes fit``.
 KIND_NAME = re.compile(r"[A-Za-z0-9][A-Za-z0-9._-]*")
 
@@ -286,14 +273,14 @@ def fit_outcome_file(path, out, *, kind: str = "injections", model: str = "auto"
         raise InputError(f"output folder {str(out)!r} exists and is not empty; give a new or empty folder "
                          "(nothing is overwritten).")
     load_spec(model)
-    table = Table({"mag": _floats(raw[cols["mag"]], cols["mag"], what),
+    table = Table({"mag": column_floats(raw[cols["mag"]], cols["mag"], what),
                    "detected": outcome_flags(raw[cols["detected"]], cols["detected"])})
     has_xy = cols["x"] in raw.colnames and cols["y"] in raw.colnames
     if has_xy:
-        table["x"] = _floats(raw[cols["x"]], cols["x"], what)
-        table["y"] = _floats(raw[cols["y"]], cols["y"], what)
+        table["x"] = column_floats(raw[cols["x"]], cols["x"], what)
+        table["y"] = column_floats(raw[cols["y"]], cols["y"], what)
     if cols["noise"] in raw.colnames:
-        table["noise"] = _floats(raw[cols["noise"]], cols["noise"], what)
+        table["noise"] = column_floats(raw[cols["noise"]], cols["noise"], what)
     mags = np.asarray(table["mag"], float)
     good = np.isfinite(mags)
     if not good.any():
@@ -403,9 +390,11 @@ def fit_outcome_file(path, out, *, kind: str = "injections", model: str = "auto"
     # -- write: everything goes to a hidden sibling folder that becomes ``out`` in one rename, so a crash
     # leaves no half-written folder that looks complete, and of two fits into one new folder only the
     # first to finish lands (the other is refused: a rename onto a non-empty folder fails)
+    staging = out.parent / f"{TMP_PREFIX}{os.getpid()}-fit-{out.name}"  # no live process shares our pid
     try:
         out.parent.mkdir(parents=True, exist_ok=True)
-        staging = Path(tempfile.mkdtemp(prefix=f"{TMP_PREFIX}fit-", dir=out.parent))
+        shutil.rmtree(staging, ignore_errors=True)  # what a killed process of the same pid left
+        staging.mkdir()
     except OSError as exc:
         raise InputError(f"output folder {str(out)!r} cannot be created: {os_reason(exc)}.") from None
     try:
@@ -414,7 +403,6 @@ def fit_outcome_file(path, out, *, kind: str = "injections", model: str = "auto"
         (staging / layout.FIGURES_DIR).mkdir()
         save_figure(ax.figure, staging / layout.FIGURES_DIR / f"{kind}_completeness")
         (staging / layout.SUMMARY).write_text(dumps(summary, indent=2, fallback=str) + "\n")
-        staging.chmod(0o777 & ~_umask())
         try:
             os.rename(staging, out)  # replaces an empty folder; fails on a non-empty one
         except OSError as exc:
@@ -432,8 +420,3 @@ def fit_outcome_file(path, out, *, kind: str = "injections", model: str = "auto"
         shutil.rmtree(staging, ignore_errors=True)
     return summary
 
-
-def _umask() -> int:
-    mask = os.umask(0)
-    os.umask(mask)
-    return mask

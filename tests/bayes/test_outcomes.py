@@ -239,3 +239,15 @@ def test_the_one_covariate_transform_of_positions_and_noise():
     assert image_coordinate(0.0, 1) == -1.0
     # half the reference noise is 2.5 log10(2) = 0.753 mag deeper
     np.testing.assert_allclose(depth_covariate([1.0, 2.0, 4.0], 2.0), [2.5 * np.log10(2.0), 0.0, -2.5 * np.log10(2.0)])
+
+
+def test_column_floats_reads_masked_entries_as_missing_not_as_their_fill():
+    from comest_bayes.bayes.outcomes import column_floats
+    from comest_bayes.errors import InputError
+
+    col = np.ma.MaskedArray([24.0, 0.0, 25.5, 99.0], mask=[False, True, False, True])
+    got = column_floats(col, "mag")
+    assert got[0] == 24.0 and got[2] == 25.5 and np.isnan(got[1]) and np.isnan(got[3])
+    np.testing.assert_array_equal(column_floats(np.array([1, 2], np.int16)), [1.0, 2.0])
+    with pytest.raises(InputError, match=r"cat: column 'mag' must hold numbers, got dtype <U2 \(e.g. \['ab'"):
+        column_floats(np.array(["ab", "cd"]), "mag", "cat")
