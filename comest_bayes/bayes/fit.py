@@ -16,7 +16,8 @@ import numpy as np
 from astropy.table import Table
 
 from comest_bayes.ratios import binned as R
-from comest_bayes.bayes.checks import ShapeCheck, shape_check, shape_warning
+from comest_bayes.bayes.checks import (CovariateCheck, ShapeCheck, cell_probabilities, covariate_check, covariate_warning,
+                                      shape_check, shape_warning, thin_draws)
 from comest_bayes.config import RunConfig
 from comest_bayes.errors import InputError
 from comest_bayes.bayes.inference import IdentifiabilityWarning, fit, fit_map
@@ -69,6 +70,8 @@ class FitEntry:
         The spline's smoothness; None for other links.
     shape_check : ShapeCheck or None
         The posterior predictive check per magnitude bin.
+    covariate_check : CovariateCheck or None
+        The same check per tile of the image and per depth bin.
     warnings : tuple of str
         What the fit warned about.
     n_outcomes, n_cells : int or None
@@ -92,6 +95,7 @@ class FitEntry:
     diagnostics: dict = field(default_factory=dict)
     tau: float | None = None
     shape_check: ShapeCheck | None = None
+    covariate_check: CovariateCheck | None = None
     warnings: tuple[str, ...] = ()
     n_outcomes: int | None = None
     n_cells: int | None = None
@@ -108,6 +112,7 @@ class FitEntry:
         out = {"name": self.name, "requested": self.requested, "selection": self.selection, **self.magnitudes,
                "parameters": self.parameters, "curve": self.curve, "diagnostics": self.diagnostics, "tau": self.tau,
                "shape_check": None if self.shape_check is None else self.shape_check.to_dict(),
+               "covariate_check": None if self.covariate_check is None else self.covariate_check.to_dict(),
                "warnings": list(self.warnings), "n_outcomes": self.n_outcomes, "n_cells": self.n_cells,
                "seconds": self.seconds}
         if self.warm_refit is not None:
@@ -437,9 +442,19 @@ def fit_kind(outcomes: Table, *, kind: str, quantity: str, requested: str, confi
         warnings.warn(w, UserWarning, stacklevel=2)
         warn.append(w)
     draws = result.draws()
-    # the run's ratio bins, so the check speaks of the same bins as the binned table
-    check = shape_check(model, draws, edges) if products else None
+    # the cells' predictions per draw, shared by the two checks; the shape check uses the run's ratio bins,
+    # so that it speaks of the same bins as the binned table
+    cell_p = cell_probabilities(model, thin_draws(draws)) if products else None
+    check = shape_check(model, draws, edges, p=cell_p) if products else None
     msg = shape_warning(check, name=chosen_spec.name, kind=kind, quantity=quantity) if check is not None else None
+    if msg:
+        warnings.warn(msg, UserWarning, stacklevel=2)
+        warn.append(msg)
+    # the same check per tile of the image and per depth bin: what the magnitude bins average away
+    has_uv = "uv" in (meta.get("available") or ())
+    cov_check = covariate_check(model, draws, u=cov.u if has_uv else None, v=cov.v if has_uv else None,
+                                depth=cov.depth, detected=outcome, image_shape=image_shape, p=cell_p) if products else None
+    msg = covariate_warning(cov_check, name=chosen_spec.name, kind=kind, quantity=quantity) if cov_check else None
     if msg:
         warnings.warn(msg, UserWarning, stacklevel=2)
         warn.append(msg)
@@ -478,6 +493,7 @@ def fit_kind(outcomes: Table, *, kind: str, quantity: str, requested: str, confi
         diagnostics=diagnostics,
         tau=model.tau,
         shape_check=check,
+        covariate_check=cov_check,
         warnings=tuple(warn + list(diagnostics.get("warnings", []))),
         n_outcomes=int(data.ntotal),
         n_cells=int(data.ncells),

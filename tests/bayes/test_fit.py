@@ -30,11 +30,12 @@ def test_depth_model_recovers_the_truth_and_reports_intervals():
     assert 23.5 < entry.magnitudes["m50"]["median"] < 24.0
     assert entry.magnitudes["m50"]["lo68"] <= entry.magnitudes["m50"]["median"] <= entry.magnitudes["m50"]["hi68"]
     json.dumps(entry.to_dict())  # JSON-ready
-    # the JSON form has the keys (and order) summary.json has always had for a fit
+    # the JSON form has the keys (and order) summary.json has had for a fit, the covariate check after the shape's
     d = entry.to_dict()
     assert list(d) == ["name", "requested", "selection", "m50", "m80", "m90", "parameters", "curve", "diagnostics",
-                       "tau", "shape_check", "warnings", "n_outcomes", "n_cells", "seconds"]
+                       "tau", "shape_check", "covariate_check", "warnings", "n_outcomes", "n_cells", "seconds"]
     assert d["m50"] == entry.magnitudes["m50"] and d["shape_check"] == entry.shape_check.to_dict()
+    assert d["covariate_check"] == entry.covariate_check.to_dict()
     assert d["warnings"] == list(entry.warnings) and d["n_cells"] == entry.n_cells
 
 
