@@ -17,8 +17,8 @@ import numpy as np
 from scipy import sparse, special
 from comest_bayes.bayes.model import padded_size
 
-__all__ = ["thin_draws", "cell_probabilities", "shape_check", "ShapeCheck", "ShapeBin", "P_WARN", "shape_warning", "covariate_check", "CovariateCheck",
-           "covariate_warning"]
+__all__ = ["thin_draws", "cell_probabilities", "shape_check", "ShapeCheck", "ShapeBin", "P_WARN", "shape_warning",
+           "covariate_check", "CovariateCheck", "GroupTest", "covariate_warning"]
 
 #: A p-value below this makes the fit warn that the model's form, not its statistics, limits it.
 P_WARN = 1e-3
@@ -377,19 +377,20 @@ def covariate_warning(check: CovariateCheck, *, name: str, kind: str, quantity: 
     w = worst.worst
     what = f"the {quantity} curve" if name == quantity else f"the {name} {quantity} curve"
     band = f"predicted {quantity} {w['band'][0]:.2f}-{w['band'][1]:.2f}"
+    combined = f"combined p = {check.p_value:.1e}" if len(parts) > 1 else f"p = {check.p_value:.1e}"
+    counts = (f"{w['observed']} detections of {w['n']} against {w['expected']:.1f} predicted ({w['z']:+.1f} sigma; "
+              f"chi2 = {worst.chi2:.1f} for {worst.dof} groups")
     if worst is check.position:
-        place = (f"across the image: the tile centred near pixel ({w['x']:.0f}, {w['y']:.0f}), {band}, has "
-                 f"{w['observed']} detections of {w['n']} against {w['expected']:.1f} predicted ({w['z']:+.1f} sigma; "
-                 f"chi2 = {worst.chi2:.1f} for {worst.dof} groups of {CHECK_TILES}x{CHECK_TILES} tiles by "
-                 f"{quantity} band, p = {check.p_value:.1e} with the depth part)")
-        remedy = ("the completeness varies with position in a way the noise map does not explain (scattered light, "
-                  "crowding, a PSF change): give the run the weight or noise map that does, try --model auto_smooth, "
-                  "or use the binned ratios of that region")
+        place = (f"across the image: the tile centred near pixel ({w['x']:.0f}, {w['y']:.0f}), {band}, has {counts} "
+                 f"of {CHECK_TILES}x{CHECK_TILES} tiles by {quantity} band, {combined})")
+        cause = "varies with position in a way the noise map does not explain (scattered light, crowding, a PSF change)"
+        remedy = ("give the run the weight or noise map that does, try --model auto_smooth, or use the binned ratios "
+                  "of that region" if quantity == "completeness" else f"use the binned {quantity} ratios of that region")
     else:
         place = (f"with the local depth: at depth {w['depth'][0]:+.2f} to {w['depth'][1]:+.2f} mag, {band}, "
-                 f"{w['observed']} detections of {w['n']} against {w['expected']:.1f} predicted ({w['z']:+.1f} sigma; "
-                 f"chi2 = {worst.chi2:.1f} for {worst.dof} groups of depth bin by {quantity} band, "
-                 f"p = {check.p_value:.1e} with the positional part)")
-        remedy = ("the completeness does not follow the depth as the model assumes (m50 linear in it): check the "
-                  "noise map, or use the binned ratios per depth range")
-    return (f"{what} of {kind} does not describe the outcomes {place}; its intervals are too narrow there. {remedy}")
+                 f"{counts} of depth bin by {quantity} band, {combined})")
+        cause = "does not follow the depth as the model assumes"
+        remedy = ("check the noise map, or use the binned ratios per depth range" if quantity == "completeness"
+                  else f"use the binned {quantity} ratios per depth range")
+    return (f"{what} of {kind} does not describe the outcomes {place}; its intervals are too narrow there. "
+            f"The {quantity} {cause}: {remedy}")

@@ -174,7 +174,10 @@ def test_an_m50_that_saturates_with_depth_fails_the_depth_part():
     assert check.position is None  # no positions given: that part does not apply
     assert check.depth.p_value < 1e-6 and check.p_value == check.depth.p_value
     msg = covariate_warning(check, name="logistic_depth", kind="point", quantity="completeness")
-    assert msg is not None and "with the local depth" in msg
+    assert msg is not None and "with the local depth" in msg and "noise map" in msg
+    # the purity model has no more flexible rung to point to: the remedy is its binned ratios
+    msg = covariate_warning(check, name="purity", kind="point", quantity="purity")
+    assert msg.startswith("the purity curve of point") and "binned purity ratios per depth range" in msg
 
 
 def test_the_covariate_check_needs_the_cells_of_the_injections():
