@@ -115,6 +115,24 @@ def cell_probabilities(model, theta) -> np.ndarray:
     return np.atleast_2d(model.prob(np.atleast_2d(theta), cov))[:, :g]
 
 
+def _group_z(counts, pt, observed):
+    """Predicted detections per group and the z of the observed ones, under the posterior predictive.
+
+    ``counts`` (sparse, groups x cells) holds the injections of each cell in each group, ``pt``
+    (cells x draws) the cells' predicted completeness per draw.  Per group: the expected detections
+    ``mean_s E_s``, ``E_s = sum_c counts f_cs``, and the predictive variance, binomial plus posterior,
+    ``mean_s sum_c counts f (1 - f) + var_s E_s``.  ``z`` is NaN where that variance is below
+    :data:`MIN_VARIANCE` (a group whose prediction is certain to well below one detection).
+    """
+    e_s = np.asarray(counts @ pt)                                                   # (groups, S)
+    var = np.asarray(counts @ (pt * (1.0 - pt))).mean(axis=1) + (e_s.var(axis=1) if pt.shape[1] > 1 else 0.0)
+    expected = e_s.mean(axis=1)
+    used = var >= MIN_VARIANCE
+    z = np.full(expected.shape, np.nan)
+    z[used] = (observed[used] - expected[used]) / np.sqrt(var[used])
+    return expected, z
+
+
 def shape_check(model, draws, mag_edges, *, p=None) -> ShapeCheck:
     """Posterior predictive check of the detections per magnitude bin.
 
@@ -142,25 +160,17 @@ def shape_check(model, draws, mag_edges, *, p=None) -> ShapeCheck:
     edges = np.asarray(mag_edges, float)
     if edges.ndim != 1 or edges.size < 2 or not np.all(np.diff(edges) > 0):
         raise ValueError("mag_edges must be a 1-D increasing array of at least two edges")
-    theta = thin_draws(draws)
     data = model.data
     m = np.asarray(data.cov.m, float)
-    n = np.asarray(data.n, float)
-    k = np.asarray(data.k, float)
     nb = edges.size - 1
     b = np.searchsorted(edges, m, side="right") - 1
-    inside = (b >= 0) & (b < nb)
-    b, n, k = b[inside], n[inside], k[inside]
-    p = (cell_probabilities(model, theta) if p is None else np.atleast_2d(p))[:, inside]          # (S, G)
-    e_bs = np.stack([np.bincount(b, weights=n * ps, minlength=nb) for ps in p])          # (S, B)
-    v_bin = np.stack([np.bincount(b, weights=n * ps * (1.0 - ps), minlength=nb) for ps in p]).mean(axis=0)
-    expected = e_bs.mean(axis=0)
-    var = v_bin + (e_bs.var(axis=0) if len(theta) > 1 else 0.0)
-    observed = np.bincount(b, weights=k, minlength=nb)
-    count = np.bincount(b, weights=n, minlength=nb)
-    used = var >= MIN_VARIANCE
-    z = np.full(nb, np.nan)
-    z[used] = (observed[used] - expected[used]) / np.sqrt(var[used])
+    inside = np.flatnonzero((b >= 0) & (b < nb))
+    p = cell_probabilities(model, thin_draws(draws)) if p is None else np.atleast_2d(p)
+    counts = sparse.csr_matrix((np.asarray(data.n, float)[inside], (b[inside], inside)), shape=(nb, p.shape[1]))
+    observed = np.bincount(b[inside], weights=np.asarray(data.k, float)[inside], minlength=nb)
+    count = np.bincount(b[inside], weights=np.asarray(data.n, float)[inside], minlength=nb)
+    expected, z = _group_z(counts, np.ascontiguousarray(p.T), observed)
+    used = np.isfinite(z)
     centres = 0.5 * (edges[:-1] + edges[1:])
     dof = int(used.sum())
     chi2 = float(np.sum(z[used] ** 2)) if dof else None
@@ -254,26 +264,19 @@ class CovariateCheck:
                 "depth": None if self.depth is None else self.depth.to_dict()}
 
 
-def _group_test(group, ngroups, cell, detected, pt, qt, where) -> GroupTest | None:
+def _group_test(group, ngroups, cell, detected, pt, where) -> GroupTest | None:
     """The chi-square of observed against predicted detections over ``ngroups`` groups of injections.
 
     ``group`` and ``cell`` give each injection's group and cell, ``pt`` (G, S) the cells' predicted
-    completeness per draw and ``qt`` its ``pt (1 - pt)``; ``where(g)`` describes group ``g`` (a dict).
+    completeness per draw (:func:`_group_z`); ``where(g)`` describes group ``g`` (a dict).
     """
-    # the injections' counts per (cell, group): the predictions are per cell, so one sparse product per
-    # draw gives every group's expectation
     counts = sparse.csr_matrix((np.ones(cell.size), (group, cell)), shape=(ngroups, pt.shape[0]))
-    e_s = np.asarray(counts @ pt)                                                    # (ngroups, S)
-    v_bin = np.asarray(counts @ qt).mean(axis=1)
-    expected = e_s.mean(axis=1)
-    var = v_bin + (e_s.var(axis=1) if pt.shape[1] > 1 else 0.0)
     observed = np.bincount(group, weights=detected.astype(float), minlength=ngroups)
     count = np.bincount(group, minlength=ngroups).astype(float)
-    used = var >= MIN_VARIANCE
+    expected, z = _group_z(counts, pt, observed)
+    used = np.isfinite(z)
     if not used.any():
         return None
-    z = np.full(ngroups, np.nan)
-    z[used] = (observed[used] - expected[used]) / np.sqrt(var[used])
     chi2 = float(np.sum(z[used] ** 2))
     dof = int(used.sum())
     w = int(np.nanargmax(np.abs(z)))
@@ -328,7 +331,6 @@ def covariate_check(model, draws, *, u=None, v=None, depth=None, detected, image
     band = np.searchsorted(np.asarray(CHECK_BANDS), p.mean(axis=0)[index], side="right")
     # per cell and draw, contiguous along the draws: every group's sums are then one sparse product
     pt = np.ascontiguousarray(p.T)
-    qt = pt * (1.0 - pt)
     nbands = len(CHECK_BANDS) + 1
     edges_band = (0.0,) + tuple(CHECK_BANDS) + (1.0,)
 
@@ -350,7 +352,7 @@ def covariate_check(model, draws, *, u=None, v=None, depth=None, detected, image
             cu, cv = -1.0 + (2 * iu + 1) / tiles, -1.0 + (2 * iv + 1) / tiles
             return {"x": float((cu + 1.0) * 0.5 * (nx - 1)), "y": float((cv + 1.0) * 0.5 * (ny - 1)), **band_of(g)}
 
-        position = _group_test((tv * tiles + tu) * nbands + band, tiles * tiles * nbands, index, detected, pt, qt,
+        position = _group_test((tv * tiles + tu) * nbands + band, tiles * tiles * nbands, index, detected, pt,
                                where_tile)
     depth_test = None
     if depth is not None and np.ptp(np.asarray(depth, float)) >= 0.01:
@@ -362,7 +364,7 @@ def covariate_check(model, draws, *, u=None, v=None, depth=None, detected, image
             j = g // nbands
             return {"depth": [float(qs[j]), float(qs[j + 1])], **band_of(g)}
 
-        depth_test = _group_test(bins * nbands + band, (qs.size - 1) * nbands, index, detected, pt, qt, where_depth)
+        depth_test = _group_test(bins * nbands + band, (qs.size - 1) * nbands, index, detected, pt, where_depth)
     parts = [t.p_value for t in (position, depth_test) if t is not None]
     return CovariateCheck(position=position, depth=depth_test,
                           p_value=min(1.0, len(parts) * min(parts)) if parts else None)

@@ -347,6 +347,7 @@ def fit_kind(outcomes: Table, *, kind: str, quantity: str, requested: str, confi
                 "inert (depth 0 everywhere); give a noise column, or positions and a noise map, to let m50 "
                 "follow the depth")
     data = compress_for(spec, cov, outcome, meta=meta)
+    has_uv = "uv" in (meta.get("available") or ())  # the injections have positions
     seed = int_seed_for(config.seed, Stream.FIT, quantity, kind)
     if most_flexible:
         candidates = candidates[-1:]
@@ -384,7 +385,7 @@ def fit_kind(outcomes: Table, *, kind: str, quantity: str, requested: str, confi
         chosen_spec = next(c for c in candidates if c.name == sel.chosen)
         tested = None
         width_cands = resolve_width_candidates(spec)
-        if width_cands and not chosen_spec.uses_position and "uv" in (meta.get("available") or ()):
+        if width_cands and not chosen_spec.uses_position and has_uv:
             # the width test of the chosen rung: one Jacobian of its cells, no refit (docs/bayesian.md,
             # "Positional width"); a plane and the rungs' quadratic field in log w, Bonferroni-combined;
             # only a scene whose width differs across the image pays for position
@@ -451,7 +452,6 @@ def fit_kind(outcomes: Table, *, kind: str, quantity: str, requested: str, confi
         warnings.warn(msg, UserWarning, stacklevel=2)
         warn.append(msg)
     # the same check per tile of the image and per depth bin: what the magnitude bins average away
-    has_uv = "uv" in (meta.get("available") or ())
     cov_check = covariate_check(model, draws, u=cov.u if has_uv else None, v=cov.v if has_uv else None,
                                 depth=cov.depth, detected=outcome, image_shape=image_shape, p=cell_p) if products else None
     msg = covariate_warning(cov_check, name=chosen_spec.name, kind=kind, quantity=quantity) if cov_check else None
