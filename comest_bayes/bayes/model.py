@@ -20,7 +20,7 @@ from scipy import special as _sp
 from comest_bayes.errors import ConfigError, InputError
 from comest_bayes.bayes.spec import ModelSpec, load_spec
 from comest_bayes.bayes import links as _links, shapes as _shapes
-from comest_bayes.bayes.shapes import SPLINE_H, SPLINE_T0, full_eta, monotone_spline, richards_logs
+from comest_bayes.bayes.shapes import SPLINE_H0, full_eta, spline_knots, monotone_spline, richards_logs
 from comest_bayes.bayes.bases import smooth_basis, smooth_basis_names
 from comest_bayes.bayes.links import Z_CLIP, safe_logaddexp, softplus, link_logs, logistic_mixture_logs, mixture_logs
 from comest_bayes.bayes.outcomes import BinomialData, Covariates, _COVARIATE_GROUPS, covariates_needed
@@ -158,11 +158,12 @@ def _log_prior(st: _Structure, theta, prior):
     for j in beta_slots:  # Beta(a, b) on sigmoid(theta_j), with the Jacobian of the logit
         total = total + active[j] * (-a[j] * softplus(-theta[j]) - b[j] * softplus(theta[j]) - lnorm[j])
     if st.n_knots:
-        # first-order random walk of the knot log-rates outward from the anchor (eta = 0 at t = 0):
-        # increments ~ N(0, tau^2 h); a proper Gaussian whose log-determinant is K log(tau^2 h)
-        k0 = int(round(-SPLINE_T0 / SPLINE_H))
+        # first-order random walk of the knot log-rates outward from the anchor (eta = 0 at t = 0), one
+        # step per knot: increments ~ N(0, tau^2 h0), a walk in the warped coordinate s of the knots
+        # (shapes.spline_knots), so its roughness per knot is the same near m50 and far out
+        _, k0 = spline_knots(st.n_knots)
         eta = full_eta(theta[e0:e1], k0)
-        var = jnp.exp(2.0 * log_tau) * SPLINE_H
+        var = jnp.exp(2.0 * log_tau) * SPLINE_H0
         rw = -0.5 * jnp.sum(jnp.diff(eta) ** 2) / var - 0.5 * st.n_knots * jnp.log(2.0 * math.pi * var)
         total = total + active[e0] * rw
     return total

@@ -7,28 +7,54 @@ Formulas: ``docs/bayesian.md`` ("Transition shapes of the flexible rungs").
 
 from __future__ import annotations
 
+import math
+
 import jax.numpy as jnp
+import numpy as np
 
-__all__ = ["SPLINE_T0", "SPLINE_H", "spline_knots", "monotone_spline", "richards_logs", "softplus", "logaddexp"]
+__all__ = ["SPLINE_H0", "SPLINE_WARP", "SPLINE_ANCHOR", "SPLINE_CHORD", "spline_knots", "monotone_spline", "richards_logs", "softplus", "logaddexp"]
 
-#: First knot of the monotone spline in standardised magnitude t = (m - m50) / w.
-SPLINE_T0 = -6.0
-#: Knot spacing in t (half the chord width: features half as wide as the transition are followed);
-#: the anchor knot (eta = 0) sits at t = 0.
-SPLINE_H = 0.5
+#: Knot spacing of the monotone spline at t = 0, in standardised magnitude t = (m - m50) / w.
+SPLINE_H0 = 0.25
+#: Scale of the knot warp: the knots sit at ``t = SPLINE_WARP sinh(s / SPLINE_WARP)`` for ``s`` on a
+#: uniform grid of step ``SPLINE_H0``, fine near m50 and wider (exponentially) far from it.
+SPLINE_WARP = 1.5
+#: Index of the anchor knot (``t = 0``, ``eta = 0``): 24 knots on the bright side reach ``t = -41``.
+SPLINE_ANCHOR = 24
+#: Half-width of the chord window: the rate's mean over ``[-SPLINE_CHORD, SPLINE_CHORD]`` is 1.
+SPLINE_CHORD = 2.0
 
 
 def spline_knots(n_free: int):
-    """Knot positions (numpy-free tuple) and the anchor index for ``n_free`` free knot parameters.
+    """Knot positions (tuple of floats) and the anchor index for ``n_free`` free knot log-rates.
 
-    The knots are ``SPLINE_T0 + k SPLINE_H`` for ``k = 0 .. n_free``; the one at
-    ``t = 0`` (index ``-SPLINE_T0 / SPLINE_H``) is the anchor.
+    Knot ``k`` (``k = 0 .. n_free``) sits at ``SPLINE_WARP sinh((k - k0) SPLINE_H0 / SPLINE_WARP)``
+    with ``k0 = SPLINE_ANCHOR`` the anchor at ``t = 0``.
     """
-    k0 = int(round(-SPLINE_T0 / SPLINE_H))
-    if n_free < k0 + 1:
-        raise ValueError(f"a monotone spline needs at least {k0 + 1} free knots (the anchor sits at index {k0}), "
-                         f"got {n_free}")
-    return tuple(SPLINE_T0 + k * SPLINE_H for k in range(n_free + 1)), k0
+    k0 = SPLINE_ANCHOR
+    if n_free < k0 + 2:
+        raise ValueError(f"a monotone spline needs at least {k0 + 2} free knots (the anchor sits at index {k0} "
+                         f"and the faint side needs two), got {n_free}")
+    s = (np.arange(n_free + 1) - k0) * SPLINE_H0
+    knots = SPLINE_WARP * np.sinh(s / SPLINE_WARP)
+    knots[k0] = 0.0
+    return tuple(float(x) for x in knots), k0
+
+
+def _window_weights(knots: np.ndarray, half: float) -> np.ndarray:
+    """Weights ``c_k`` with ``sum_k c_k r_k`` the integral over ``[-half, half]`` of the rate that is
+    linear between the knots (exact for any window end inside a knot interval)."""
+    c = np.zeros(knots.size)
+    for j in range(knots.size - 1):
+        a, b = max(knots[j], -half), min(knots[j + 1], half)
+        if b <= a:
+            continue
+        h = knots[j + 1] - knots[j]
+        # integral over [a, b] of the hat functions of knots j and j + 1
+        ua, ub = (a - knots[j]) / h, (b - knots[j]) / h
+        c[j] += h * ((ub - ua) - 0.5 * (ub ** 2 - ua ** 2))
+        c[j + 1] += h * 0.5 * (ub ** 2 - ua ** 2)
+    return c
 
 
 def softplus(x):
@@ -59,34 +85,39 @@ def monotone_spline(t, eta_free):
     t : array
         Standardised magnitudes (any shape).
     eta_free : array, shape (K,)
-        Log-rates at the knots other than the anchor (``K >= 13``).
+        Log-rates at the knots other than the anchor (``K >= SPLINE_ANCHOR + 2``).
 
     Returns
     -------
     array, shape of t
-        Decreasing in t, ``S(0) = 0``, ``S(-h) - S(h) = 2 h`` (``h = SPLINE_H``); ``S(t) = -t`` when
+        Decreasing in t, ``S(0) = 0``, ``S(-T) - S(T) = 2 T`` (``T = SPLINE_CHORD``); ``S(t) = -t`` when
         ``eta_free = 0``.
     """
     n_free = eta_free.shape[0]
-    k0 = int(round(-SPLINE_T0 / SPLINE_H))
+    knots_t, k0 = spline_knots(n_free)
+    knots = np.asarray(knots_t)
+    dk = np.diff(knots)
+    weights = _window_weights(knots, SPLINE_CHORD)
     eta = full_eta(eta_free, k0)                                 # (K + 1,)
-    # the chord normalisation: the mean rate over [-h, h] is 1, so S(-h) - S(h) = 2 h whatever the
-    # shape, and w is the transition's chord width there, not the inverse of its slope at m50 alone
-    # (a transition with a shoulder at m50 has a small slope there and steep flanks on both sides)
-    log_c = logaddexp(logaddexp(eta[k0 - 1], eta[k0 + 1]), jnp.log(2.0) + eta[k0]) - jnp.log(4.0)
+    # the chord normalisation: the mean rate over [-T, T] is 1, so S(-T) - S(T) = 2 T whatever the
+    # shape, and w is the chord width of the whole transition, not the inverse of its slope at m50
+    # alone (a transition with a shoulder at m50 has a small slope there and steep flanks on both sides)
+    top = jnp.max(eta)
+    log_c = top + jnp.log(jnp.sum(jnp.asarray(weights) * jnp.exp(eta - top))) - math.log(2.0 * SPLINE_CHORD)
     rate = jnp.exp(eta - log_c)
-    seg = 0.5 * SPLINE_H * (rate[:-1] + rate[1:])                 # integral over each knot interval
+    seg = 0.5 * jnp.asarray(dk) * (rate[:-1] + rate[1:])        # integral over each knot interval
     cum = jnp.concatenate([jnp.zeros(1, dtype=rate.dtype), jnp.cumsum(seg)])  # I(t_k) from t_0
-    t_last = SPLINE_T0 + n_free * SPLINE_H
-    pos = (t - SPLINE_T0) / SPLINE_H
-    idx = jnp.clip(jnp.floor(pos).astype(jnp.int32), 0, n_free - 1)
-    u = t - (SPLINE_T0 + idx * SPLINE_H)  # in [0, h) inside; not clipped (a clip halves the slope at knots)
+    t0, t_last = float(knots[0]), float(knots[-1])
+    idx = jnp.clip(jnp.searchsorted(jnp.asarray(knots), t, side="right") - 1, 0, n_free - 1)
+    left = jnp.asarray(knots)[idx]
+    h = jnp.asarray(dk)[idx]
+    u = t - left  # in [0, h) inside; not clipped (a clip halves the slope at knots)
     r0 = rate[idx]
     r1 = rate[idx + 1]
-    inside = cum[idx] + r0 * u + (r1 - r0) * u * u / (2.0 * SPLINE_H)
-    below = rate[0] * (t - SPLINE_T0)                             # t < t_0: constant rate
-    above = cum[-1] + rate[-1] * (t - t_last)                     # t > t_last
-    integral = jnp.where(t < SPLINE_T0, below, jnp.where(t > t_last, above, inside))
+    inside = cum[idx] + r0 * u + (r1 - r0) * u * u / (2.0 * h)
+    below = rate[0] * (t - t0)                                   # t < t_0: constant rate
+    above = cum[-1] + rate[-1] * (t - t_last)                    # t > t_last
+    integral = jnp.where(t < t0, below, jnp.where(t > t_last, above, inside))
     return -(integral - cum[k0])
 
 

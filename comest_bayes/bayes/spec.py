@@ -78,9 +78,9 @@ DEFAULT_PRIORS: dict[str, dict[str, Any]] = {
 #: Allowed total degree of the positional field of log w (0: none).
 WIDTH_ORDER_RANGE = (0, 2)
 
-#: Allowed number of free knots of the monotone spline (knots at t = -6, -5.5, ... in units of w;
-#: at least 13 so that the anchor at t = 0 has a free knot on each side).
-SPLINE_KNOTS_RANGE = (13, 48)
+#: Allowed number of free knots of the monotone spline (shapes.spline_knots: 24 on the bright side of
+#: the anchor at t = 0, at least two on the faint side).
+SPLINE_KNOTS_RANGE = (26, 60)
 
 #: Distribution family allowed for each prior key and its arguments.
 _PRIOR_FAMILY = {"A": "beta", "floor": "beta"}
@@ -140,8 +140,11 @@ class ModelSpec:
         Which magnitude is the covariate ``m``: the injected one (completeness)
         or the measured one (purity).  Default ``"true"``.
     spline_knots : int
-        Free knots of the monotone spline (``link = "spline"``), one per half
-        unit of ``t = (m - m50) / w`` from ``t = -6``; default 32 (up to ``t = 10``).
+        Free knots of the monotone spline (``link = "spline"``) in
+        ``t = (m - m50) / w``: 24 on the bright side of the anchor at ``t = 0``
+        (reaching ``t = -41``), the rest on the faint side, a quarter unit
+        apart at ``t = 0`` and wider outward (:func:`comest_bayes.bayes.shapes.spline_knots`);
+        default 44 (up to ``t = 21``).
     spline_tau : "evidence" or float
         Smoothness scale of the spline's random walk on the knot log-rates:
         a number, or ``"evidence"`` (default) to choose it by the Laplace
@@ -166,7 +169,7 @@ class ModelSpec:
     description: str = ""
     kind: str = "completeness"
     magnitude: str = "true"
-    spline_knots: int = 32
+    spline_knots: int = 44
     spline_tau: Any = "evidence"
     source: str = ""
 

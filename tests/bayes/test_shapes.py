@@ -6,11 +6,12 @@ import numpy as np
 import pytest
 from scipy.special import expit
 
-from comest_bayes.bayes.shapes import SPLINE_H, SPLINE_T0, monotone_spline, richards_logs, spline_knots
+from comest_bayes.bayes.shapes import (SPLINE_ANCHOR, SPLINE_CHORD, SPLINE_H0, SPLINE_WARP, monotone_spline,
+                                       richards_logs, spline_knots)
 
 jax.config.update("jax_enable_x64", True)
 
-K = 32
+K = 44
 
 
 def test_straight_spline_is_minus_t_everywhere():
@@ -26,10 +27,10 @@ def test_spline_is_anchored_and_monotone_for_any_rates():
         s = np.asarray(monotone_spline(t, eta))
         assert np.all(np.diff(s) < 0)  # strictly decreasing: the rate exp(eta) is positive
         assert float(monotone_spline(jnp.zeros(1), eta)[0]) == pytest.approx(0.0, abs=1e-12)
-        # the chord normalisation: S falls by exactly 2h over [-h, h] whatever the rates, while the
+        # the chord normalisation: S falls by exactly 2T over [-T, T] whatever the rates, while the
         # slope at the anchor itself is free (a shoulder at m50 has a small one)
-        chord = monotone_spline(jnp.asarray([-SPLINE_H, SPLINE_H]), eta)
-        assert float(chord[0] - chord[1]) == pytest.approx(2.0 * SPLINE_H, abs=1e-12)
+        chord = monotone_spline(jnp.asarray([-SPLINE_CHORD, SPLINE_CHORD]), eta)
+        assert float(chord[0] - chord[1]) == pytest.approx(2.0 * SPLINE_CHORD, abs=1e-12)
 
 
 def test_spline_integrates_the_piecewise_linear_rate():
@@ -38,9 +39,10 @@ def test_spline_integrates_the_piecewise_linear_rate():
     eta = rng.normal(0.0, 0.8, K)
     knots, k0 = spline_knots(K)
     full = np.insert(eta, k0, 0.0)
-    r = np.exp(full)
-    full = full - np.log((r[k0 - 1] + 2.0 * r[k0] + r[k0 + 1]) / 4.0)  # mean rate over [-h, h] is 1
-    for t_end in (-9.0, -2.5, 0.3, 4.7, 12.0):
+    # the mean rate over [-T, T] is 1, integrated here numerically (the code integrates exactly)
+    win = np.linspace(-SPLINE_CHORD, SPLINE_CHORD, 400001)
+    full = full - np.log(np.trapezoid(np.interp(win, knots, np.exp(full)), win) / (2.0 * SPLINE_CHORD))
+    for t_end in (-35.0, -9.0, -2.5, 0.3, 4.7, 12.0, 30.0):
         u = np.linspace(0.0, t_end, 100001)
         # the rate is linear between knots in exp(eta), constant beyond the outer knots (as np.interp)
         rate = np.interp(u, knots, np.exp(full))
@@ -51,9 +53,16 @@ def test_spline_integrates_the_piecewise_linear_rate():
 
 def test_knots_layout():
     knots, k0 = spline_knots(K)
-    assert knots[0] == SPLINE_T0 and knots[k0] == 0.0 and knots[1] - knots[0] == SPLINE_H and len(knots) == K + 1
-    with pytest.raises(ValueError, match="at least 13 free knots .* got 3"):
-        spline_knots(3)
+    knots = np.asarray(knots)
+    assert k0 == SPLINE_ANCHOR and knots[k0] == 0.0 and len(knots) == K + 1
+    # spacing SPLINE_H0 at m50, growing outward, symmetric about the anchor
+    assert knots[k0 + 1] - knots[k0] == pytest.approx(SPLINE_WARP * np.sinh(SPLINE_H0 / SPLINE_WARP), rel=1e-12)
+    assert np.all(np.diff(np.diff(knots[k0:])) > 0) and np.all(np.diff(np.diff(knots[:k0 + 1])) < 0)
+    np.testing.assert_allclose(knots[k0 - 5:k0][::-1], -knots[k0 + 1:k0 + 6], rtol=1e-12)
+    # the bright side reaches 40 units of w (a feature 4 mag brighter than a 0.1-mag-wide transition)
+    assert knots[0] < -40.0 and knots[-1] > 20.0
+    with pytest.raises(ValueError, match="at least 26 free knots .* got 13"):
+        spline_knots(13)
 
 
 def test_richards_with_nu_one_is_the_logistic_and_half_at_zero():

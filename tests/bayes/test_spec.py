@@ -82,9 +82,9 @@ def test_shipped_specs_have_the_documented_content():
     assert [c.name for c in resolve_candidates("auto")] == list(auto.candidates)
     # simplest first: parameter counts never decrease along the candidate list (a spline adds its knot log-rates)
     counts = [len(c.parameters()) + (c.spline_knots if c.link == "spline" else 0) for c in resolve_candidates("auto")]
-    assert counts == sorted(counts) and counts == [4, 5, 6, 37]
+    assert counts == sorted(counts) and counts == [4, 5, 6, 49]
     spline = load_spec("spline_depth")
-    assert (spline.link, spline.spatial, spline.spline_knots, spline.spline_tau) == ("spline", "depth", 32, "evidence")
+    assert (spline.link, spline.spatial, spline.spline_knots, spline.spline_tau) == ("spline", "depth", 44, "evidence")
     assert load_spec("auto_smooth").candidates[-1] == "spline_depth"
 
 
