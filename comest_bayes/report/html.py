@@ -567,14 +567,16 @@ def _model_sections(r: _Report) -> None:
                 f"{check['max_abs_z']:.1f} sigma at {check['mag_at_max']:.2f} mag. A p below 0.001 means the "
                 "model's form, not its statistics, limits it: then trust the binned ratios.")
         cc = e.get("covariate_check") or {}
-        parts = [(label, cc.get(key)) for key, label in (("position", "image tiles"), ("depth", "depth bins"))
+        parts = [(key, label, cc[key]) for key, label in (("position", "image tiles"), ("depth", "depth bins"))
                  if cc.get(key)]
         if parts:
+            combined = f"; combined p = {cc['p_value']:.2g}" if len(parts) > 1 else ""
             r.p("Covariate check (the same comparison per " + " and per ".join(
-                f"{label}, split by predicted completeness: chi2 = {t['chi2']:.1f} for {t['dof']} groups, "
-                f"p = {t['p_value']:.2g}" for label, t in parts)
-                + f"; combined p = {cc['p_value']:.2g}). A p below 0.001 means the completeness varies with position "
-                "or depth in a way the model does not follow; the warning below names where.")
+                f"{label}, split by predicted {q}: chi2 = {t['chi2']:.1f} for {t['dof']} groups, "
+                f"p = {t['p_value']:.2g}" for _, label, t in parts)
+                + f"{combined}). A p below 0.001 means the {q} varies with "
+                + " or ".join(key for key, _, _ in parts)
+                + " in a way the model does not follow; the warning below names where.")
         for w in e.get("warnings") or []:
             r.p(f"warning: {w}", "warn")
         if diag and diag.get("method") not in ("importance", "nuts"):  # emcee's autocorrelation and traces

@@ -401,3 +401,24 @@ def test_report_options_and_the_extrapolation_label_of_a_purity_model(tmp_path):
     entry = {"median": 26.1, "lo68": 25.9, "hi68": 26.3, "extrapolated": True}
     assert _interval(entry).endswith("extrapolated: outside the injected magnitudes")
     assert _interval(entry, purity=True).endswith("extrapolated: outside the measured magnitudes of the detections")
+
+
+def test_the_covariate_check_paragraph_speaks_of_the_quantity_and_of_the_parts_it_ran(report_run, tmp_path):
+    # A completeness check with both parts gives a combined p; a purity check with its depth part alone
+    # gives none and speaks of purity, not completeness (the report said "completeness" and "combined" for both).
+    out = tmp_path / "run"
+    shutil.copytree(report_run[0], out, ignore=shutil.ignore_patterns("figures", "report.html", "again.html"))
+    summary = json.loads((out / "summary.json").read_text())
+    kind = next(iter(summary["kinds"]))
+    part = {"chi2": 71.3, "dof": 60, "p_value": 0.151, "worst": {}}
+    summary["kinds"][kind]["model"]["covariate_check"] = {"p_value": 0.302, "position": part, "depth": dict(part)}
+    summary["kinds"][kind]["purity_model"] = {**summary["kinds"][kind]["model"], "covariate_check": {
+        "p_value": 0.044, "position": None, "depth": {"chi2": 51.2, "dof": 31, "p_value": 0.044, "worst": {}}}}
+    (out / "summary.json").write_text(json.dumps(summary))
+    html = write_report(out).read_text()
+    both = html.split("Covariate check (the same comparison per image tiles")[1].split("</p>")[0]
+    assert "split by predicted completeness" in both and "combined p = 0.3)" in both
+    assert "the completeness varies with position or depth" in both
+    depth_only = html.split("Covariate check (the same comparison per depth bins")[1].split("</p>")[0]
+    assert "split by predicted purity: chi2 = 51.2 for 31 groups, p = 0.044)" in depth_only
+    assert "combined" not in depth_only and "the purity varies with depth in a way" in depth_only
