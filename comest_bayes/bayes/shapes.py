@@ -37,7 +37,6 @@ def spline_knots(n_free: int):
                          f"and the faint side needs two), got {n_free}")
     s = (np.arange(n_free + 1) - k0) * SPLINE_H0
     knots = SPLINE_WARP * np.sinh(s / SPLINE_WARP)
-    knots[k0] = 0.0
     return tuple(float(x) for x in knots), k0
 
 
