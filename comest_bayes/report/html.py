@@ -510,7 +510,7 @@ def _model_sections(r: _Report) -> None:
                 worst = max((v.get("diff_over_sd") or 0.0 for v in (t.get("quantities") or {}).values()), default=None)
                 rows.append([t["name"], t["nparams"], _num(t.get("elpd_loo")), _num(t.get("se")),
                              _num(t.get("delta_elpd")), _num(t.get("se_delta")), _num(t.get("p_loo")),
-                             _num(worst), {True: "yes", False: "no"}.get(t.get("adequate"), ""),
+                             _num(worst), {True: "yes", False: "no"}.get(t.get("adequate"), "not checked"),
                              "yes" if t.get("chosen") else ""])
                 if t.get("chosen"):
                     classes[i] = "chosen"

@@ -44,12 +44,18 @@ def test_auto_selection_prefers_the_depth_model_when_depth_varies():
     post, entry = fit_depth_split(table, noise_map, "auto", min_ess=100)
     # the truth is a logistic whose m50 follows the depth: that rung agrees with the spline on every
     # targeted quantity (adequate) and is the simplest within the LOO margin; the logistic without
-    # depth is ~180 nats worse and misses f at the probes by 2-3 of its sd
+    # depth is ~180 nats worse: outside the margin, so its adequacy is never checked (no draws, no quantities)
     assert entry.selection["chosen"] == "logistic_depth"
     rows = {row["name"]: row for row in entry.selection["table"]}
     assert list(rows)[0] == "logistic" and list(rows)[-1] == "spline_depth"
-    assert rows["logistic"]["delta_elpd"] < -50 and not rows["logistic"]["adequate"]
-    assert rows["logistic_depth"]["adequate"] and rows["spline_depth"]["adequate"]
+    assert rows["logistic"]["delta_elpd"] < -50
+    assert rows["logistic"]["adequate"] is None and rows["logistic"]["quantities"] == {}
+    assert rows["logistic_depth"]["adequate"] is True and rows["spline_depth"]["adequate"] is True
+    # the chosen rung was compared with the spline on every targeted quantity; the rung above it was not checked
+    assert set(rows["logistic_depth"]["quantities"]) == {"m50", "m90", "f_bright", "f_faint"}
+    assert all(q["diff_over_sd"] <= 1.0 / 3.0 for q in rows["logistic_depth"]["quantities"].values())
+    if "richards_depth" in rows:
+        assert rows["richards_depth"]["adequate"] is None
     # the width does not vary over the image: the score test of the chosen rung does not escalate
     assert entry.selection["width_test"]["escalated"] is False
     assert entry.selection["width_test"]["p_value"] > 1e-3
