@@ -7,6 +7,7 @@ Laplace form; :func:`select_model` applies the selection rule.  Derivations and 
 
 from __future__ import annotations
 
+import functools
 import math
 import time
 import warnings
@@ -23,7 +24,7 @@ from comest_bayes.bayes.model import CompletenessModel, shared_layout, width_fie
 from comest_bayes.bayes.checks import P_WARN, shape_check
 from comest_bayes.bayes.spec import resolve_candidates, load_spec
 
-__all__ = ["LooWarning", "LooResult", "SelectionResult", "loo_grouped", "compare_loo", "select_model",
+__all__ = ["LooWarning", "LooResult", "SelectionResult", "loo_grouped", "compare_loo", "apply_rule", "select_model",
            "KHAT_THRESHOLD", "WidthScore", "WidthTest", "width_position_test", "width_scores", "WIDTH_TEST_P"]
 
 #: Pareto k-hat above which the PSIS estimate of an observation is unreliable
@@ -496,6 +497,35 @@ def _moments(values: np.ndarray) -> tuple[float, float]:
     return float(np.mean(values[ok])), float(np.std(values[ok]))
 
 
+def _quantity_summary(q_draws: dict, ref_draws: dict) -> dict:
+    """Per quantity: the candidate's posterior mean and sd and ``|mean - reference mean| / sd``
+    (``diff_over_sd``, NaN where undefined), flagged ``undefined`` where neither reaches it in most draws."""
+    out = {}
+    for qname, values in q_draws.items():
+        mean, sd = _moments(np.asarray(values, float))
+        ref, _ = _moments(np.asarray(ref_draws[qname], float))
+        z = abs(mean - ref) / sd if sd > 0 and math.isfinite(mean) and math.isfinite(ref) else math.nan
+        both_undefined = not math.isfinite(mean) and not math.isfinite(ref)
+        out[qname] = {"mean": mean, "sd": sd, "diff_over_sd": z, **({"undefined": True} if both_undefined else {})}
+    return out
+
+
+def apply_rule(rows: list, adequate, *, margin: float = 4.0, margin_se: float = 2.0) -> tuple[str, str]:
+    """The selection rule on LOO rows (:func:`compare_loo`, simplest first): ``(chosen name, how)``.
+
+    Climbing from the simplest row, the first whose ``delta_elpd >= -max(margin, margin_se * se_delta)``
+    and ``adequate(name)``; if none, the adequate row of highest ``elpd_loo``.  ``adequate`` is called
+    only for the rows the rule needs, in that order (the selection computes a candidate's adequacy
+    checks on the first call); at least one row must be adequate.
+    """
+    for r in rows:
+        if r["delta_elpd"] >= -max(margin, margin_se * r["se_delta"]) and adequate(r["name"]):
+            return r["name"], "simplest adequate candidate within the LOO margin"
+    # the reference lies outside the margin too: the adequate candidate of highest elpd
+    chosen = next(r["name"] for r in sorted(rows, key=lambda r: -r["elpd_loo"]) if adequate(r["name"]))
+    return chosen, "no adequate candidate within the LOO margin: the adequate one of highest elpd"
+
+
 def select_model(data, candidates, *, seed: int, margin: float = 4.0, margin_se: float = 2.0,
                  min_ess: float = 400, max_steps: int = 20000, chunk: int = 500, nwalkers: int | None = None,
                  nstarts: int = 2, moves="de", loo_draws: int | None = 1000, model_factory=None,
@@ -669,10 +699,10 @@ m SE}_\Delta)` nats).  If no adequate candidate is
             lap = laplace(model, mp.theta)
             result = FitResult(map=mp, laplace=lap, posterior=None, seconds=0.0)
             loos[name] = loo_laplace(model, mp.theta, lap.cov)
-            info["draws"] = lambda model=model, lap=lap, cseed=cseed: _adequacy_draws(model, lap, cseed)
+            info["draws"] = functools.partial(_adequacy_draws, model, lap, cseed)
             prev = (list(model.names), mp.theta)
         if scoring == "emcee":
-            info["draws"] = lambda eq_draws=eq_draws: eq_draws
+            info["draws"] = functools.partial(np.asarray, eq_draws)
         fits[name], models[name] = result, model
         result.seconds = time.perf_counter() - t1
         seconds[name] = result.seconds
@@ -698,57 +728,27 @@ m SE}_\Delta)` nats).  If no adequate candidate is
     adequacy = {top: (True, {}, None)}  # the reference is adequate by definition
 
     def adequate(name):
-        if name in adequacy:
-            return adequacy[name][0]
-        if not compared:
-            adequacy[name] = (True, {}, None)
-            return True
-        info = checks(name)
-        ref_q = checks(top).get("q_draws", {}) if quantities is not None else {}
-        ok = True
-        qsum = {}
-        if "q_draws" in info:
-            for qname, values in info["q_draws"].items():
-                mean, sd = _moments(np.asarray(values, float))
-                ref, _ = _moments(np.asarray(ref_q[qname], float))
-                z = abs(mean - ref) / sd if sd > 0 and math.isfinite(mean) and math.isfinite(ref) else math.nan
-                # a level that neither this candidate nor the reference reaches in most draws (a purity that
-                # never falls to one half) is no disagreement: both say the crossing lies outside the searched
-                # range, where no injection informs either; one defined and the other not is one
-                both_undefined = not math.isfinite(mean) and not math.isfinite(ref)
-                qsum[qname] = {"mean": mean, "sd": sd, "diff_over_sd": z, **({"undefined": True} if both_undefined
-                                                                            else {})}
-                if name != top and not both_undefined and not (z <= adequacy_fraction):
-                    ok = False
-        p_shape = info["shape"].p_value if "shape" in info else None
-        if p_shape is not None and p_shape < P_WARN:
-            ok = False
-        adequacy[name] = (ok, qsum, p_shape)
-        return ok
+        if name not in adequacy:
+            info = checks(name)
+            ref_q = checks(top).get("q_draws", {}) if quantities is not None else {}
+            qsum = _quantity_summary(info.get("q_draws", {}), ref_q)
+            # a level that neither this candidate nor the reference reaches in most draws (a purity that never
+            # falls to one half) is no disagreement: both say the crossing lies outside the searched range, where
+            # no injection informs either; one defined and the other not is one
+            ok = all(q.get("undefined") or q["diff_over_sd"] <= adequacy_fraction for q in qsum.values())
+            p_shape = info["shape"].p_value if "shape" in info else None
+            if p_shape is not None and p_shape < P_WARN:
+                ok = False
+            adequacy[name] = (ok, qsum, p_shape)
+        return adequacy[name][0]
 
-    # climb from the simplest candidate: the first adequate one within the LOO margin is chosen, and the
-    # candidates outside the margin (which the rule cannot choose) and above the chosen one are never
-    # checked; their adequacy draws, quantities and shape check would cost as much as their fits
-    chosen = None
-    for r in rows:
-        if r["delta_elpd"] >= -max(margin, margin_se * r["se_delta"]) and adequate(r["name"]):
-            chosen = r["name"]
-            break
-    how = "simplest adequate candidate within the LOO margin"
-    if chosen is None:
-        # the reference lies outside the margin too: the adequate candidate of highest elpd (the reference is)
-        chosen = next(r["name"] for r in sorted(rows, key=lambda r: -r["elpd_loo"]) if adequate(r["name"]))
-        how = "no adequate candidate within the LOO margin: the adequate one of highest elpd"
+    chosen, how = apply_rule(rows, adequate, margin=margin, margin_se=margin_se)
     table = []
     for r in rows:
         name = r["name"]
         ok, qsum, p_shape = adequacy.get(name, (None, {}, None))
         if name == top and "q_draws" in extra[top]:  # the reference's own quantities, as checked against
-            qsum = {}
-            for q, values in extra[top]["q_draws"].items():
-                mean, sd = _moments(np.asarray(values, float))
-                qsum[q] = {"mean": mean, "sd": sd, "diff_over_sd": 0.0 if math.isfinite(mean) and sd > 0 else math.nan,
-                           **({} if math.isfinite(mean) else {"undefined": True})}
+            qsum = _quantity_summary(extra[top]["q_draws"], extra[top]["q_draws"])
         row = {"name": name, "nparams": int(models[name].ndim), **{k: v for k, v in r.items() if k != "name"},
                "adequate": None if ok is None else bool(ok), "shape_p": p_shape, "quantities": qsum,
                "seconds": float(seconds[name])}

@@ -15,7 +15,7 @@ import numpy as np
 import pytest
 
 from comest_bayes.bayes.inference import fit_map, laplace
-from comest_bayes.bayes.selection import LooResult, LooWarning, compare_loo, loo_grouped, select_model
+from comest_bayes.bayes.selection import LooResult, LooWarning, apply_rule, compare_loo, loo_grouped, select_model
 from toy_inference import ToyModel, compress_toy, simulate
 
 
@@ -314,3 +314,47 @@ def test_a_smoothness_handed_in_is_kept_and_a_same_model_start_is_refined():
     ref.tau = tau
     scratch = fit_map(ref, seed=3, nstarts=2)
     assert abs(res.fits["spline_depth"].map.log_prob - scratch.log_prob) < 1e-3
+
+
+def _rule_rows(elpds, ses):
+    """LOO rows of :func:`compare_loo`'s shape from elpd values and paired SEs (simplest first)."""
+    best = max(elpds)
+    return [{"name": f"c{i}", "elpd_loo": e, "delta_elpd": e - best, "se_delta": se}
+            for i, (e, se) in enumerate(zip(elpds, ses))]
+
+
+def _eager_rule(rows, ok, margin=4.0, margin_se=2.0):
+    """The rule with every candidate's adequacy known in advance (what the selection computed before)."""
+    for r in rows:
+        if ok[r["name"]] and r["delta_elpd"] >= -max(margin, margin_se * r["se_delta"]):
+            return r["name"]
+    return max((r for r in rows if ok[r["name"]]), key=lambda r: r["elpd_loo"])["name"]
+
+
+@pytest.mark.parametrize("elpds, ses, ok, expect_checked", [
+    # the simplest candidate 200 nats out, the next within the margin and adequate: only that one is checked
+    ([-1700.0, -1486.0, -1485.0, -1484.0], [20.0, 3.3, 2.5, 0.0], [False, True, True, True], ["c1"]),
+    # 7 nats out with a paired SE of 3.3 (margin 6.6) is outside: the rung above is the first checked
+    ([-1700.0, -1491.0, -1487.0, -1484.0], [20.0, 3.3, 2.5, 0.0], [False, True, True, True], ["c2"]),
+    # the first within the margin inadequate, the next adequate: those two, not the one outside nor the top
+    ([-1700.0, -1490.0, -1486.0, -1484.0], [20.0, 3.0, 2.0, 0.0], [True, False, True, True], ["c1", "c2"]),
+    # nothing but the reference within the margin: no check at all (the reference is adequate by definition)
+    ([-1700.0, -1600.0, -1550.0, -1484.0], [20.0, 9.0, 8.0, 0.0], [True, True, True, True], ["c3"]),
+    # the reference outside the margin and the only candidate within it inadequate: the adequate one of highest
+    # elpd, checked in order of elpd
+    ([-1490.0, -1480.0, -1470.0, -1500.0], [5.0, 2.0, 0.0, 3.0], [True, True, False, True], ["c2", "c1"]),
+])
+def test_the_rule_checks_adequacy_only_where_it_needs_it_and_chooses_as_if_it_knew_all(elpds, ses, ok, expect_checked):
+    rows = _rule_rows(elpds, ses)
+    truth = {f"c{i}": v for i, v in enumerate(ok)}
+    checked = []
+
+    def adequate(name):  # the selection computes a candidate's checks once; record the first call only
+        if name not in checked:
+            checked.append(name)
+        return truth[name]
+
+    chosen, how = apply_rule(rows, adequate)
+    assert chosen == _eager_rule(rows, truth)
+    assert checked == expect_checked
+    assert ("no adequate candidate" in how) == (elpds == [-1490.0, -1480.0, -1470.0, -1500.0])
